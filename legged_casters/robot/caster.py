@@ -62,10 +62,10 @@ class CasterParams:
     base_mass: float = 0.03
     fork_mass: float = 0.04
     wheel_mass: float = 0.05
-    # Swivel axis pitched forward from the calf axis (deg). At the nominal pose the
-    # calf points 40.1 deg forward-down, so 48 deg leaves the swivel axis tilted ~8 deg
-    # forward: upright enough for the legs to tilt it from -20 to +50 deg, and far
-    # enough from vertical (an unstable stance) to stand still.
+    # Swivel axis pitched forward from the calf axis (deg). In the loaded standing pose
+    # the calf points ~44 deg forward-down, so 48 deg leaves the swivel axis tilted ~4
+    # deg forward: the legs can tilt it from -21 to +55 deg with the trunk at standing
+    # height, and it is off vertical (an unstable stance) so the robot stands still.
     mount_angle: float = 48.0
     swivel_damping: float = 0.03  # N m s/rad; the paper randomises U[0.01, 0.1]
     # 2e-4: below ~1.5e-4 the robot stance goes soft and the rig under-reads the
