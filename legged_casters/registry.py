@@ -31,11 +31,17 @@ def register(name: str, env_class: type, env_cfg: Any, train_cfg: Any) -> None:
     _TASKS[name] = TaskSpec(name, env_class, env_cfg, train_cfg)
 
 
+def _load_builtin_tasks() -> None:
+    import legged_casters.envs  # noqa: F401  (registers the built-in tasks)
+
+
 def list_tasks() -> list[str]:
+    _load_builtin_tasks()
     return sorted(_TASKS)
 
 
 def get_task(name: str) -> TaskSpec:
+    _load_builtin_tasks()
     try:
         return _TASKS[name]
     except KeyError:

@@ -3,6 +3,7 @@ from typing import Literal
 
 import pytest
 
+import legged_casters.envs  # noqa: F401  (built-in tasks registered before the registry is swapped)
 from legged_casters import registry
 from legged_casters.config import ConfigError, apply_overrides, dump_yaml, load_yaml, parse_overrides, to_dict
 

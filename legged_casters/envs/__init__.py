@@ -1,0 +1,6 @@
+"""Built-in tasks; importing this package registers them."""
+
+from legged_casters import registry
+from legged_casters.envs.go2_flat import Go2FlatCfg, Go2FlatEnv, go2_flat_train_cfg
+
+registry.register("go2_flat", Go2FlatEnv, Go2FlatCfg(), go2_flat_train_cfg())

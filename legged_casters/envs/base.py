@@ -1,0 +1,479 @@
+"""The base legged env: what every task shares, on top of a simulation backend.
+
+A task subclasses `LeggedEnv` and adds only what is its own: its observation terms
+(`_obs_<name>` methods listed in `OBSERVATIONS`), its reward terms (`_reward_<name>`
+methods, weighted by `cfg.rewards.scales`), and any extra state. The env talks to
+the simulator only through `legged_casters.sim` (qpos, qvel, named sensors), so the
+MuJoCo C and MuJoCo Warp backends serve every task unchanged. It implements the
+rsl_rl 5.5 VecEnv contract: observations as a TensorDict of groups ("policy" for
+the actor, "critic" for the privileged extras), extras["time_outs"] and per-term
+episode sums in extras["log"].
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import math
+
+import mujoco
+import numpy as np
+import torch
+from rsl_rl.env import VecEnv
+from tensordict import TensorDict
+
+from legged_casters.envs.config import LeggedEnvCfg
+from legged_casters.robot import build, go2
+from legged_casters.sim.base import make_backend, physics_model
+from legged_casters.utils.math import quat_from_yaw, quat_rotate_inverse
+
+CPU_DEFAULT_NUM_ENVS = 512
+GPU_DEFAULT_NUM_ENVS = 4096
+
+
+def resolve_backend(kind: str) -> str:
+    if kind == "auto":
+        return "warp" if torch.cuda.is_available() else "cpu"
+    return kind
+
+
+def _uniform(lo: float, hi: float, shape, device) -> torch.Tensor:
+    return torch.rand(shape, device=device) * (hi - lo) + lo
+
+
+class LeggedEnv(VecEnv):
+    OBSERVATIONS: dict[str, tuple[str, ...]] = {"policy": (), "critic": ()}
+    """Observation group -> term names, in order. The one place the layout is written."""
+    COLLISION_SENSORS: tuple[str, ...] = ()
+    """Contact sensors whose contact counts as a collision (reward term `collision`)."""
+
+    def __init__(self, cfg: LeggedEnvCfg):
+        self.cfg = cfg
+        torch.manual_seed(cfg.seed)
+        np.random.seed(cfg.seed)
+        self.backend_kind = resolve_backend(cfg.sim.backend)
+        if cfg.sim.device == "auto":
+            device = "cuda:0" if self.backend_kind == "warp" and torch.cuda.is_available() else "cpu"
+        else:
+            device = cfg.sim.device
+        self.device = torch.device(device)
+        num_envs = cfg.num_envs or (GPU_DEFAULT_NUM_ENVS if self.backend_kind == "warp" else CPU_DEFAULT_NUM_ENVS)
+        self.model = physics_model(build.MODEL_FILES[cfg.robot])
+        self.sim = make_backend(self.backend_kind, self.model, num_envs, cfg.sim.decimation, self.device)
+        self.num_envs = num_envs
+        self.num_actions = len(go2.ACTUATED_JOINTS)
+        self.dt = self.sim.control_dt
+        self.max_episode_length = int(math.ceil(cfg.episode_length_s / self.dt))
+        self._init_indices()
+        self._init_buffers()
+        self._init_rewards()
+        self.reset_idx(torch.arange(self.num_envs, device=self.device))
+        self._init_observation_layout()
+
+    # --- set-up ----------------------------------------------------------------------
+    def _init_indices(self) -> None:
+        m, dev = self.model, self.device
+        joints = [m.joint(j) for j in go2.ACTUATED_JOINTS]
+        self.joint_qadr = torch.tensor([j.qposadr[0] for j in joints], device=dev)
+        self.joint_dadr = torch.tensor([j.dofadr[0] for j in joints], device=dev)
+        key = m.key(build.STAND_KEY).id
+        self.nominal_qpos = torch.tensor(m.key_qpos[key], dtype=torch.float32, device=dev)
+        self.default_joint_pos = torch.tensor(go2.default_joint_positions(), device=dev)
+        ranges = torch.tensor(go2.joint_ranges(), device=dev)
+        mid, half = ranges.mean(1), (ranges[:, 1] - ranges[:, 0]) / 2
+        soft = self.cfg.rewards.soft_joint_pos_limit
+        self.soft_joint_limits = torch.stack([mid - soft * half, mid + soft * half], dim=1)
+        self.joint_vel_limits = torch.tensor(go2.velocity_limits(), device=dev)
+        self.torque_limits = torch.tensor(go2.torque_limits(), device=dev)
+        self.trunk_id = m.body(go2.TRUNK_BODY).id
+        self._sensor_cols: dict[tuple[str, ...], torch.Tensor] = {}
+
+    def _init_buffers(self) -> None:
+        n, dev = self.num_envs, self.device
+        self.actions = torch.zeros(n, self.num_actions, device=dev)
+        self.last_actions = torch.zeros_like(self.actions)
+        self.commands = torch.zeros(n, 3, device=dev)
+        self.episode_length_buf = torch.zeros(n, dtype=torch.long, device=dev)
+        self.reset_buf = torch.zeros(n, dtype=torch.bool, device=dev)
+        self.time_out_buf = torch.zeros(n, dtype=torch.bool, device=dev)
+        self.terminated_buf = torch.zeros(n, dtype=torch.bool, device=dev)
+        self.rew_buf = torch.zeros(n, device=dev)
+        self.last_joint_vel = torch.zeros(n, self.num_actions, device=dev)
+        self.common_step_counter = 0
+        self.extras: dict = {"log": {}}
+        self.nonfinite_resets = 0
+        ranges = self.cfg.commands.ranges
+        self.command_ranges = {
+            "lin_vel_x": list(ranges.lin_vel_x),
+            "lin_vel_y": list(ranges.lin_vel_y),
+            "ang_vel_yaw": list(ranges.ang_vel_yaw),
+        }
+        self._refresh_state()
+
+    def _init_rewards(self) -> None:
+        self.reward_terms: dict[str, tuple] = {}
+        available = sorted(n[len("_reward_") :] for n in dir(self) if n.startswith("_reward_"))
+        for name, scale in self.cfg.rewards.scales.items():
+            fn = getattr(self, f"_reward_{name}", None)
+            if fn is None:
+                raise ValueError(f"unknown reward term {name!r} for {type(self).__name__}; available: {available}")
+            if scale != 0.0:
+                self.reward_terms[name] = (fn, scale * self.dt)
+        self.episode_sums = {name: torch.zeros(self.num_envs, device=self.device) for name in self.reward_terms}
+
+    def _init_observation_layout(self) -> None:
+        scales = self.cfg.observations.scales
+        self.obs_layout: dict[str, list[tuple[str, int, float]]] = {}
+        for group, terms in self.OBSERVATIONS.items():
+            layout = []
+            for term in terms:
+                fn = getattr(self, f"_obs_{term}", None)
+                if fn is None:
+                    raise ValueError(f"{type(self).__name__}: no method _obs_{term} for observation term {term!r}")
+                layout.append((term, int(fn().shape[1]), float(scales.get(term, 1.0))))
+            self.obs_layout[group] = layout
+        noise = []
+        for term, dim, scale in self.obs_layout["policy"]:
+            amp = self.cfg.noise.scales.get(term, 0.0) * scale * self.cfg.noise.level
+            noise.append(torch.full((dim,), amp if self.cfg.noise.enabled else 0.0))
+        self.noise_vec = torch.cat(noise).to(self.device) if noise else torch.zeros(0, device=self.device)
+        self.obs_buf = self.compute_observations()
+
+    def observation_dims(self) -> dict[str, int]:
+        return {group: sum(dim for _, dim, _ in layout) for group, layout in self.obs_layout.items()}
+
+    # --- state ------------------------------------------------------------------------
+    def sensor_values(self, names: tuple[str, ...]) -> torch.Tensor:
+        """Named sensors' values side by side, (num_envs, total dim)."""
+        cols = self._sensor_cols.get(names)
+        if cols is None:
+            slices = [self.sim._sensor_slices[n] for n in names]
+            cols = torch.tensor([i for s in slices for i in range(s.start, s.stop)], device=self.device)
+            self._sensor_cols[names] = cols
+        return self.sim.sensordata[:, cols]
+
+    def contact_found(self, names: tuple[str, ...]) -> torch.Tensor:
+        """(num_envs, len(names)) bool: does each contact sensor see a contact?"""
+        return self.sensor_values(names).view(self.num_envs, len(names), 4)[..., 0] > 0
+
+    def contact_force(self, names: tuple[str, ...]) -> torch.Tensor:
+        """(num_envs, len(names)) net contact force magnitude of each contact sensor."""
+        return torch.linalg.norm(self.sensor_values(names).view(self.num_envs, len(names), 4)[..., 1:], dim=-1)
+
+    def _refresh_state(self) -> None:
+        qpos, qvel = self.sim.qpos, self.sim.qvel
+        self.base_pos = qpos[:, 0:3]
+        self.base_quat = qpos[:, 3:7]
+        self.base_lin_vel_world = qvel[:, 0:3]
+        self.base_lin_vel = quat_rotate_inverse(self.base_quat, self.base_lin_vel_world)
+        self.base_ang_vel = qvel[:, 3:6]  # a free joint's angular velocity is in the body frame
+        gravity = torch.tensor([0.0, 0.0, -1.0], device=self.device).expand(self.num_envs, 3)
+        self.projected_gravity = quat_rotate_inverse(self.base_quat, gravity)
+        self.joint_pos = qpos[:, self.joint_qadr]
+        self.joint_vel = qvel[:, self.joint_dadr]
+        self.torques = self.sensor_values(tuple(f"{j}_torque" for j in go2.ACTUATED_JOINTS))
+
+    # --- stepping ---------------------------------------------------------------------
+    def get_observations(self) -> TensorDict:
+        return self.obs_buf
+
+    def step(self, actions: torch.Tensor):
+        clip = self.cfg.control.clip_actions
+        actions = actions.to(self.device)
+        bad_actions = ~torch.isfinite(actions).all(dim=1)
+        self.actions[:] = torch.nan_to_num(actions, nan=0.0, posinf=0.0, neginf=0.0).clamp(-clip, clip)
+        targets = self.default_joint_pos + self.cfg.control.action_scale * self.actions
+        self._maybe_push()
+        self.sim.step(targets)
+        self.episode_length_buf += 1
+        self.common_step_counter += 1
+        self._refresh_state()
+        self._post_physics_step()
+        self._resample_on_timer()
+        self.check_termination(bad_actions)
+        self.compute_reward()
+        env_ids = self.reset_buf.nonzero(as_tuple=False).flatten()
+        self.extras = {"log": {}}
+        if len(env_ids):
+            self.reset_idx(env_ids)
+        self.obs_buf = self.compute_observations()
+        self.last_actions[:] = self.actions
+        self.last_joint_vel[:] = self.joint_vel
+        self.extras["time_outs"] = self.time_out_buf.clone()
+        return self.obs_buf, self.rew_buf.clone(), self.reset_buf.clone(), self.extras
+
+    def _post_physics_step(self) -> None:
+        """Task hook: update task state after physics, before terminations and rewards."""
+
+    def _resample_on_timer(self) -> None:
+        every = max(1, int(round(self.cfg.commands.resampling_time / self.dt)))
+        ids = ((self.episode_length_buf % every) == 0).nonzero(as_tuple=False).flatten()
+        if len(ids):
+            self.resample_commands(ids)
+
+    def resample_commands(self, env_ids: torch.Tensor) -> None:
+        n = len(env_ids)
+        for col, key in enumerate(("lin_vel_x", "lin_vel_y", "ang_vel_yaw")):
+            lo, hi = self.command_ranges[key]
+            self.commands[env_ids, col] = _uniform(lo, hi, (n,), self.device)
+        standing = torch.rand(n, device=self.device) < self.cfg.commands.standing_fraction
+        self.commands[env_ids[standing]] = 0.0
+
+    def _maybe_push(self) -> None:
+        dr = self.cfg.domain_rand
+        every = max(1, int(round(dr.push_interval_s / self.dt)))
+        if not dr.push_robots or self.common_step_counter == 0 or self.common_step_counter % every:
+            return
+        qvel = self.sim.qvel.clone()
+        qvel[:, 0:2] += _uniform(-dr.max_push_vel_xy, dr.max_push_vel_xy, (self.num_envs, 2), self.device)
+        self.sim.reset(None, self.sim.qpos.clone(), qvel)
+
+    def check_termination(self, bad_actions: torch.Tensor | None = None) -> None:
+        term = self.cfg.termination
+        terminated = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
+        if term.trunk_contact:
+            terminated |= self.contact_found(("trunk_contact",))[:, 0]
+        if term.max_tilt_deg is not None:
+            terminated |= self.projected_gravity[:, 2] > -math.cos(math.radians(term.max_tilt_deg))
+        # A simulation that blew up, or a policy that produced NaN/inf, ends the episode
+        # (counted in the log) instead of poisoning the batch.
+        nonfinite = ~(torch.isfinite(self.sim.qpos).all(1) & torch.isfinite(self.sim.qvel).all(1))
+        if bad_actions is not None:
+            nonfinite |= bad_actions
+        self.nonfinite_resets += int(nonfinite.sum())
+        self.terminated_buf = terminated | nonfinite
+        self.time_out_buf = (self.episode_length_buf >= self.max_episode_length) & ~self.terminated_buf
+        self.reset_buf = self.terminated_buf | self.time_out_buf
+
+    def compute_reward(self) -> None:
+        self.rew_buf[:] = 0.0
+        for name, (fn, scale) in self.reward_terms.items():
+            if name == "termination":
+                continue
+            value = torch.nan_to_num(fn(), nan=0.0, posinf=0.0, neginf=0.0) * scale
+            self.rew_buf += value
+            self.episode_sums[name] += value
+        if self.cfg.rewards.only_positive_rewards:
+            self.rew_buf.clamp_(min=0.0)
+        if "termination" in self.reward_terms:
+            fn, scale = self.reward_terms["termination"]
+            value = fn() * scale
+            self.rew_buf += value
+            self.episode_sums["termination"] += value
+
+    # --- resets -----------------------------------------------------------------------
+    def reset_idx(self, env_ids: torch.Tensor) -> None:
+        if len(env_ids) == 0:
+            return
+        self._log_episodes(env_ids)
+        self.update_curriculum(env_ids)
+        self.randomize(env_ids)
+        n = len(env_ids)
+        qpos = self.nominal_qpos.expand(n, -1).clone()
+        init = self.cfg.init_state
+        qpos[:, self.joint_qadr] += _uniform(-init.joint_pos_noise, init.joint_pos_noise, (n, 12), self.device)
+        if init.random_yaw:
+            qpos[:, 3:7] = quat_from_yaw(_uniform(-math.pi, math.pi, (n,), self.device))
+        qvel = torch.zeros(n, self.model.nv, device=self.device)
+        qvel[:, 0:6] = _uniform(-init.base_vel_noise, init.base_vel_noise, (n, 6), self.device)
+        self.sim.reset(env_ids, qpos, qvel)
+        self.resample_commands(env_ids)
+        self.actions[env_ids] = 0.0
+        self.last_actions[env_ids] = 0.0
+        self.last_joint_vel[env_ids] = 0.0
+        self.episode_length_buf[env_ids] = 0
+        self._reset_task_state(env_ids)
+        self._refresh_state()
+
+    def _reset_task_state(self, env_ids: torch.Tensor) -> None:
+        """Task hook: clear the task's own per-env state."""
+
+    def reset(self) -> TensorDict:
+        self.reset_idx(torch.arange(self.num_envs, device=self.device))
+        self.obs_buf = self.compute_observations()
+        return self.obs_buf
+
+    def _log_episodes(self, env_ids: torch.Tensor) -> None:
+        log = self.extras.setdefault("log", {})
+        for name, sums in self.episode_sums.items():
+            log[f"Episode_Reward/{name}"] = sums[env_ids].mean() / self.cfg.episode_length_s
+            sums[env_ids] = 0.0
+        log["Curriculum/lin_vel_x_max"] = self.command_ranges["lin_vel_x"][1]
+        log["Curriculum/lin_vel_x_min"] = self.command_ranges["lin_vel_x"][0]
+        log["Diagnostics/nonfinite_resets"] = float(self.nonfinite_resets)
+
+    def update_curriculum(self, env_ids: torch.Tensor) -> None:
+        """Widen the forward/backward command range while linear tracking is good."""
+        cmd = self.cfg.commands
+        if not cmd.curriculum or "tracking_lin_vel" not in self.reward_terms:
+            return
+        if self.common_step_counter % self.max_episode_length:
+            return  # once per episode length, as legged_gym does
+        _, scale = self.reward_terms["tracking_lin_vel"]
+        mean = self.episode_sums["tracking_lin_vel"][env_ids].mean() / self.max_episode_length
+        if mean > cmd.curriculum_threshold * scale:
+            lo, hi = self.command_ranges["lin_vel_x"]
+            self.command_ranges["lin_vel_x"] = [
+                max(lo - cmd.curriculum_step, cmd.max_lin_vel_x[0]),
+                min(hi + cmd.curriculum_step, cmd.max_lin_vel_x[1]),
+            ]
+
+    def get_state(self) -> dict:
+        """What a resumed run needs besides the policy: the curriculum."""
+        return {"command_ranges": {k: list(v) for k, v in self.command_ranges.items()}}
+
+    def set_state(self, state: dict) -> None:
+        for key, value in state.get("command_ranges", {}).items():
+            if key not in self.command_ranges:
+                raise KeyError(f"unknown command range {key!r} in saved env state")
+            self.command_ranges[key] = [float(v) for v in value]
+
+    # --- domain randomisation ---------------------------------------------------------
+    def _joint_dofs(self, pattern: str) -> list[int]:
+        m = self.model
+        names = [m.joint(i).name for i in range(m.njnt)]
+        dofs = [int(m.jnt_dofadr[i]) for i, name in enumerate(names) if fnmatch.fnmatchcase(name, pattern)]
+        if not dofs:
+            raise ValueError(f"joint pattern {pattern!r} matches no joint; joints: {names}")
+        return dofs
+
+    def randomize(self, env_ids: torch.Tensor) -> None:
+        dr, m, dev, n = self.cfg.domain_rand, self.model, self.device, len(env_ids)
+        if dr.randomize_friction:
+            friction = torch.tensor(m.geom_friction, dtype=torch.float32, device=dev).expand(n, -1, -1).clone()
+            friction[:, :, 0] = _uniform(*dr.friction_range, (n, 1), dev)
+            self.sim.set_model_field("geom_friction", env_ids, friction)
+        if dr.randomize_base_mass:
+            mass = torch.tensor(m.body_mass, dtype=torch.float32, device=dev).expand(n, -1).clone()
+            mass[:, self.trunk_id] += _uniform(*dr.added_mass_range, (n,), dev)
+            self.sim.set_model_field("body_mass", env_ids, mass)
+        if dr.randomize_com:
+            ipos = torch.tensor(m.body_ipos, dtype=torch.float32, device=dev).expand(n, -1, -1).clone()
+            ipos[:, self.trunk_id] += _uniform(*dr.com_offset_range, (n, 3), dev)
+            self.sim.set_model_field("body_ipos", env_ids, ipos)
+        if dr.randomize_gains:
+            gain = torch.tensor(m.actuator_gainprm, dtype=torch.float32, device=dev).expand(n, -1, -1).clone()
+            bias = torch.tensor(m.actuator_biasprm, dtype=torch.float32, device=dev).expand(n, -1, -1).clone()
+            kp_scale = _uniform(*dr.kp_scale_range, (n, m.nu), dev)
+            kd_scale = _uniform(*dr.kd_scale_range, (n, m.nu), dev)
+            gain[:, :, 0] *= kp_scale
+            bias[:, :, 1] *= kp_scale
+            bias[:, :, 2] *= kd_scale
+            self.sim.set_model_field("actuator_gainprm", env_ids, gain)
+            self.sim.set_model_field("actuator_biasprm", env_ids, bias)
+        if dr.joint_damping:
+            damping = torch.tensor(m.dof_damping, dtype=torch.float32, device=dev).expand(n, -1).clone()
+            for pattern, (lo, hi) in dr.joint_damping.items():
+                dofs = self._joint_dofs(pattern)
+                damping[:, dofs] = _uniform(lo, hi, (n, len(dofs)), dev)
+            self.sim.set_model_field("dof_damping", env_ids, damping)
+        if dr.joint_frictionloss_scale:
+            floss = torch.tensor(m.dof_frictionloss, dtype=torch.float32, device=dev).expand(n, -1).clone()
+            for pattern, (lo, hi) in dr.joint_frictionloss_scale.items():
+                dofs = self._joint_dofs(pattern)
+                floss[:, dofs] *= _uniform(lo, hi, (n, len(dofs)), dev)
+            self.sim.set_model_field("dof_frictionloss", env_ids, floss)
+
+    # --- observations -----------------------------------------------------------------
+    def compute_observations(self) -> TensorDict:
+        clip = self.cfg.observations.clip
+        groups = {}
+        for group, layout in self.obs_layout.items():
+            parts = [getattr(self, f"_obs_{term}")() * scale for term, _, scale in layout]
+            obs = torch.cat(parts, dim=1) if parts else torch.zeros(self.num_envs, 0, device=self.device)
+            if group == "policy" and self.noise_vec.numel():
+                obs = obs + (2 * torch.rand_like(obs) - 1) * self.noise_vec
+            groups[group] = torch.nan_to_num(obs, nan=0.0, posinf=clip, neginf=-clip).clamp(-clip, clip)
+        return TensorDict(groups, batch_size=[self.num_envs], device=self.device)
+
+    def _obs_commands(self) -> torch.Tensor:
+        return self.commands
+
+    def _obs_base_lin_vel(self) -> torch.Tensor:
+        return self.base_lin_vel
+
+    def _obs_lin_vel(self) -> torch.Tensor:
+        """Trunk linear velocity in the world frame."""
+        return self.base_lin_vel_world
+
+    def _obs_ang_vel(self) -> torch.Tensor:
+        return self.base_ang_vel
+
+    def _obs_projected_gravity(self) -> torch.Tensor:
+        return self.projected_gravity
+
+    def _obs_joint_pos(self) -> torch.Tensor:
+        return self.joint_pos - self.default_joint_pos
+
+    def _obs_joint_vel(self) -> torch.Tensor:
+        return self.joint_vel
+
+    def _obs_actions(self) -> torch.Tensor:
+        return self.actions
+
+    def _obs_base_height(self) -> torch.Tensor:
+        return self.base_pos[:, 2:3]
+
+    # --- shared reward terms ------------------------------------------------------------
+    def _reward_tracking_lin_vel(self) -> torch.Tensor:
+        err = torch.sum((self.commands[:, :2] - self.base_lin_vel[:, :2]) ** 2, dim=1)
+        return torch.exp(-err / self.cfg.rewards.tracking_sigma)
+
+    def _reward_tracking_ang_vel(self) -> torch.Tensor:
+        err = (self.commands[:, 2] - self.base_ang_vel[:, 2]) ** 2
+        return torch.exp(-err / self.cfg.rewards.tracking_sigma)
+
+    def _reward_lin_vel_z(self) -> torch.Tensor:
+        return self.base_lin_vel[:, 2] ** 2
+
+    def _reward_ang_vel_xy(self) -> torch.Tensor:
+        return torch.sum(self.base_ang_vel[:, :2] ** 2, dim=1)
+
+    def _reward_orientation(self) -> torch.Tensor:
+        return torch.sum(self.projected_gravity[:, :2] ** 2, dim=1)
+
+    def _reward_base_height(self) -> torch.Tensor:
+        return (self.base_pos[:, 2] - self.cfg.rewards.base_height_target) ** 2
+
+    def _reward_torques(self) -> torch.Tensor:
+        return torch.sum(self.torques**2, dim=1)
+
+    def _reward_joint_vel(self) -> torch.Tensor:
+        return torch.sum(self.joint_vel**2, dim=1)
+
+    def _reward_joint_acc(self) -> torch.Tensor:
+        return torch.sum(((self.last_joint_vel - self.joint_vel) / self.dt) ** 2, dim=1)
+
+    def _reward_action_rate(self) -> torch.Tensor:
+        return torch.sum((self.last_actions - self.actions) ** 2, dim=1)
+
+    def _reward_collision(self) -> torch.Tensor:
+        if not self.COLLISION_SENSORS:
+            return torch.zeros(self.num_envs, device=self.device)
+        return torch.sum(self.contact_force(self.COLLISION_SENSORS) > 0.1, dim=1).float()
+
+    def _reward_termination(self) -> torch.Tensor:
+        return (self.terminated_buf & ~self.time_out_buf).float()
+
+    def _reward_joint_pos_limits(self) -> torch.Tensor:
+        below = (self.soft_joint_limits[:, 0] - self.joint_pos).clamp(min=0.0)
+        above = (self.joint_pos - self.soft_joint_limits[:, 1]).clamp(min=0.0)
+        return torch.sum(below + above, dim=1)
+
+    def _reward_joint_vel_limits(self) -> torch.Tensor:
+        over = self.joint_vel.abs() - self.cfg.rewards.soft_joint_vel_limit * self.joint_vel_limits
+        return torch.sum(over.clamp(min=0.0), dim=1)
+
+    def _reward_torque_limits(self) -> torch.Tensor:
+        over = self.torques.abs() - self.cfg.rewards.soft_torque_limit * self.torque_limits
+        return torch.sum(over.clamp(min=0.0), dim=1)
+
+    def _reward_stand_still(self) -> torch.Tensor:
+        still = torch.linalg.norm(self.commands, dim=1) < 0.1
+        return torch.sum((self.joint_pos - self.default_joint_pos).abs(), dim=1) * still
+
+    def close(self) -> None:
+        self.sim.close()
+
+
+def joint_names(model: mujoco.MjModel) -> list[str]:
+    return [model.joint(i).name for i in range(model.njnt)]

@@ -1,0 +1,133 @@
+"""Configuration shared by every legged task (typed dataclasses; see legged_casters.config)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+
+@dataclass
+class SimCfg:
+    backend: Literal["auto", "cpu", "warp"] = "auto"
+    """auto: MuJoCo Warp when CUDA is available, else MuJoCo C (rollout thread pool)."""
+    decimation: int = field(default=10, metadata={"min": 1})
+    """Physics steps per policy step: dt 2 ms x 10 = 50 Hz policy. dt stays 2 ms (the
+    model's timestep): a larger dt silently softens the stiff caster contact."""
+    device: str = "auto"
+    """Torch device of the env tensors; auto: cuda:0 for Warp on CUDA, else cpu."""
+
+
+@dataclass
+class ControlCfg:
+    action_scale: float = field(default=0.25, metadata={"min": 0.0})
+    """Joint target = nominal pose + action_scale * action (rad)."""
+    clip_actions: float = field(default=100.0, metadata={"min": 0.0})
+
+
+@dataclass
+class CommandRanges:
+    lin_vel_x: tuple[float, float] = (-1.0, 1.0)
+    lin_vel_y: tuple[float, float] = (-0.5, 0.5)
+    ang_vel_yaw: tuple[float, float] = (-1.0, 1.0)
+
+
+@dataclass
+class CommandsCfg:
+    resampling_time: float = field(default=10.0, metadata={"min": 0.02})
+    standing_fraction: float = field(default=0.1, metadata={"min": 0.0, "max": 1.0})
+    """Fraction of resampled commands that are exactly zero (stand still)."""
+    ranges: CommandRanges = field(default_factory=CommandRanges)
+    curriculum: bool = False
+    """Widen lin_vel_x towards `max_lin_vel_x` while tracking is good."""
+    max_lin_vel_x: tuple[float, float] = (-1.0, 1.0)
+    curriculum_step: float = field(default=0.25, metadata={"min": 0.0})
+    curriculum_threshold: float = field(default=0.8, metadata={"min": 0.0, "max": 1.0})
+    """Fraction of the maximum linear-tracking reward an episode must earn on average."""
+
+
+@dataclass
+class InitStateCfg:
+    joint_pos_noise: float = field(default=0.1, metadata={"min": 0.0})
+    """Uniform noise (rad) on the nominal joint positions at reset."""
+    base_vel_noise: float = field(default=0.1, metadata={"min": 0.0})
+    random_yaw: bool = True
+
+
+@dataclass
+class NoiseCfg:
+    enabled: bool = True
+    level: float = field(default=1.0, metadata={"min": 0.0})
+    scales: dict[str, float] = field(
+        default_factory=lambda: {"ang_vel": 0.2, "projected_gravity": 0.05, "joint_pos": 0.01, "joint_vel": 1.5}
+    )
+    """Uniform noise amplitude per policy observation term, in the term's own units."""
+
+
+@dataclass
+class ObservationsCfg:
+    scales: dict[str, float] = field(
+        default_factory=lambda: {"lin_vel": 2.0, "ang_vel": 0.25, "joint_vel": 0.05, "caster_vel": 0.05}
+    )
+    """Multiplier per observation term (terms not listed: 1)."""
+    clip: float = field(default=100.0, metadata={"min": 0.0})
+
+
+@dataclass
+class DomainRandCfg:
+    """Per-env model parameters, drawn again whenever an env resets."""
+
+    randomize_friction: bool = True
+    friction_range: tuple[float, float] = (0.5, 1.25)
+    randomize_base_mass: bool = True
+    added_mass_range: tuple[float, float] = (-1.0, 1.0)
+    randomize_com: bool = True
+    com_offset_range: tuple[float, float] = (-0.05, 0.05)
+    """Trunk centre-of-mass offset along x, y and z (m)."""
+    randomize_gains: bool = True
+    kp_scale_range: tuple[float, float] = (0.9, 1.1)
+    kd_scale_range: tuple[float, float] = (0.9, 1.1)
+    joint_damping: dict[str, list[float]] = field(default_factory=dict)
+    """{joint-name glob: [low, high]}: damping (N m s/rad) of the matching joints."""
+    joint_frictionloss_scale: dict[str, list[float]] = field(default_factory=dict)
+    """{joint-name glob: [low, high]}: scale of the matching joints' friction loss."""
+    push_robots: bool = True
+    push_interval_s: float = field(default=8.0, metadata={"min": 0.02})
+    max_push_vel_xy: float = field(default=0.5, metadata={"min": 0.0})
+
+
+@dataclass
+class RewardsCfg:
+    scales: dict[str, float] = field(default_factory=dict)
+    """Reward term name -> weight. The term is the env method `_reward_<name>`; weight
+    0 switches it off. Weights are multiplied by the policy dt."""
+    tracking_sigma: float = field(default=0.25, metadata={"min": 1e-6})
+    base_height_target: float = 0.3
+    soft_joint_pos_limit: float = field(default=0.9, metadata={"min": 0.0, "max": 1.0})
+    soft_joint_vel_limit: float = field(default=0.9, metadata={"min": 0.0, "max": 1.0})
+    soft_torque_limit: float = field(default=0.9, metadata={"min": 0.0, "max": 1.0})
+    only_positive_rewards: bool = False
+
+
+@dataclass
+class TerminationCfg:
+    trunk_contact: bool = True
+    max_tilt_deg: float | None = None
+    """Terminate when the trunk tilts further than this from upright (None: off)."""
+
+
+@dataclass
+class LeggedEnvCfg:
+    robot: Literal["caster", "point"] = "point"
+    num_envs: int | None = field(default=None, metadata={"min": 1})
+    """None: 4096 on the Warp backend, the CPU backend's efficient size otherwise."""
+    episode_length_s: float = field(default=20.0, metadata={"min": 0.1})
+    seed: int = 1
+    sim: SimCfg = field(default_factory=SimCfg)
+    control: ControlCfg = field(default_factory=ControlCfg)
+    commands: CommandsCfg = field(default_factory=CommandsCfg)
+    init_state: InitStateCfg = field(default_factory=InitStateCfg)
+    noise: NoiseCfg = field(default_factory=NoiseCfg)
+    observations: ObservationsCfg = field(default_factory=ObservationsCfg)
+    domain_rand: DomainRandCfg = field(default_factory=DomainRandCfg)
+    rewards: RewardsCfg = field(default_factory=RewardsCfg)
+    termination: TerminationCfg = field(default_factory=TerminationCfg)
