@@ -1,0 +1,189 @@
+"""MuJoCo Warp backend: all envs are worlds of one batched `mujoco_warp` Data.
+
+* Model fields in `RANDOMIZABLE_FIELDS` are given a leading world dimension
+  (`put_model(..., batch_sizes={field: num_envs})`); MuJoCo Warp's kernels read
+  world `w` of a batched field and world 0 of a shared one, so writing row `w`
+  randomises env `w` only.
+* The torch tensors exposed (`qpos`, `qvel`, `sensordata`, `ctrl`, model fields) are
+  `wp.to_torch` views of the Warp arrays: no copies, and writes through them land in
+  the simulation.
+* On CUDA the `decimation` substeps (and the forward pass used by `reset`) are
+  captured once into CUDA graphs and replayed; on the CPU device they run as a plain
+  loop (slow: a single thread runs the kernels; meant for tests on machines without a GPU).
+
+Warp computes in float32; the CPU backend in float64.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+import torch
+import warp as wp
+
+from legged_casters.sim.base import RANDOMIZABLE_FIELDS, IndexLike, SimBackend, initial_data
+
+try:
+    import mujoco_warp as mjw
+except ImportError as exc:  # pragma: no cover - mujoco_warp is a hard dependency of the package
+    raise ImportError("the Warp backend needs the mujoco_warp package") from exc
+
+
+def _warp_device(device: torch.device) -> str:
+    if device.type == "cuda":
+        return f"cuda:{device.index or 0}"
+    if device.type == "cpu":
+        return "cpu"
+    raise ValueError(f"the Warp backend runs on a cpu or cuda torch device, got {device}")
+
+
+class WarpBackend(SimBackend):
+    name = "warp"
+
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        num_envs: int,
+        decimation: int,
+        device: str | torch.device = "cpu",
+        nconmax: int = 32,
+        njmax: int | None = None,
+        use_graph: bool | None = None,
+    ):
+        """`nconmax`: contacts per world (a standing robot has 4, a fallen one more);
+        `njmax`: constraint rows per world, default 3 per contact (elliptic cone,
+        condim 3) plus joint limits and frictionloss rows. `use_graph`: capture CUDA
+        graphs (default: when on CUDA)."""
+        super().__init__(model, num_envs, decimation, device)
+        wp.init()
+        self.wp_device = wp.get_device(_warp_device(self.device))
+        self.use_graph = self.wp_device.is_cuda if use_graph is None else bool(use_graph)
+        if self.use_graph and not self.wp_device.is_cuda:
+            raise ValueError("CUDA graphs need a CUDA device")
+        if njmax is None:
+            njmax = 3 * nconmax + 2 * model.njnt + model.nv
+        self.nconmax, self.njmax = int(nconmax), int(njmax)
+
+        mjd = initial_data(model)
+        with wp.ScopedDevice(self.wp_device):
+            self.wm = mjw.put_model(model, batch_sizes={f: num_envs for f in RANDOMIZABLE_FIELDS})
+            self.wd = mjw.put_data(model, mjd, nworld=num_envs, nconmax=self.nconmax, njmax=self.njmax)
+
+        self._qpos = wp.to_torch(self.wd.qpos)
+        self._qvel = wp.to_torch(self.wd.qvel)
+        self._sens = wp.to_torch(self.wd.sensordata)
+        self._ctrl = wp.to_torch(self.wd.ctrl)
+        self._xfrc = wp.to_torch(self.wd.xfrc_applied)  # (num_envs, nbody, 6): force, torque
+        self._warmstart = wp.to_torch(self.wd.qacc_warmstart)
+        self._act = wp.to_torch(self.wd.act) if model.na else None
+        self._fields = {name: wp.to_torch(getattr(self.wm, name)) for name in RANDOMIZABLE_FIELDS}
+        for name, view in self._fields.items():
+            if view.shape[0] != num_envs:
+                raise RuntimeError(f"mujoco_warp did not batch model field {name}: shape {tuple(view.shape)}")
+        self._xfrc_pending = False
+        self._step_graph = None
+        self._forward_graph = None
+
+    # --- views -----------------------------------------------------------------------
+    @property
+    def qpos(self) -> torch.Tensor:
+        return self._qpos
+
+    @property
+    def qvel(self) -> torch.Tensor:
+        return self._qvel
+
+    @property
+    def sensordata(self) -> torch.Tensor:
+        return self._sens
+
+    @property
+    def ctrl(self) -> torch.Tensor:
+        return self._ctrl
+
+    # --- simulation --------------------------------------------------------------------
+    def _substeps(self) -> None:
+        for _ in range(self.decimation):
+            mjw.step(self.wm, self.wd)
+
+    def _forward(self) -> None:
+        mjw.forward(self.wm, self.wd)
+
+    def _run(self, fn, graph_attr: str) -> None:
+        with wp.ScopedDevice(self.wp_device):
+            if not self.use_graph:
+                fn()
+                return
+            graph = getattr(self, graph_attr)
+            if graph is None:
+                # Warp compiles and loads modules on first launch, which cannot happen
+                # inside a capture: run once for real, then capture.
+                live = [self._qpos, self._qvel, self._warmstart, self._sens, wp.to_torch(self.wd.time)]
+                if self._act is not None:
+                    live.append(self._act)
+                saved = [t.clone() for t in live]
+                fn()
+                for t, s in zip(live, saved, strict=True):
+                    t.copy_(s)
+                with wp.ScopedCapture(device=self.wp_device) as capture:
+                    fn()
+                graph = capture.graph
+                setattr(self, graph_attr, graph)
+            wp.capture_launch(graph)
+
+    def step(self, ctrl: torch.Tensor) -> None:
+        self._check_rows("ctrl", ctrl, self.num_envs, (self.nu,))
+        self._ctrl.copy_(ctrl)
+        self._run(self._substeps, "_step_graph")
+        if self._xfrc_pending:
+            self._xfrc.zero_()
+            self._xfrc_pending = False
+
+    def reset(self, env_ids: IndexLike, qpos: torch.Tensor, qvel: torch.Tensor) -> None:
+        ids_np = self.env_index(env_ids)
+        self._check_rows("qpos", qpos, len(ids_np), (self.nq,))
+        self._check_rows("qvel", qvel, len(ids_np), (self.nv,))
+        if len(ids_np) == 0:
+            return
+        ids = torch.as_tensor(ids_np, device=self.device)
+        keep = torch.ones(self.num_envs, dtype=torch.bool, device=self.device)
+        keep[ids] = False
+        kept_sens = self._sens[keep].clone()
+        self._qpos[ids] = qpos.to(self.device, self._qpos.dtype)
+        self._qvel[ids] = qvel.to(self.device, self._qvel.dtype)
+        self._warmstart[ids] = 0.0
+        self._xfrc[ids] = 0.0
+        if self._act is not None:
+            self._act[ids] = 0.0
+        # Forward runs on every world; it leaves qpos/qvel/warmstart alone, but would
+        # re-evaluate the other worlds' sensors at their current state: keep theirs.
+        self._run(self._forward, "_forward_graph")
+        self._sens[keep] = kept_sens
+
+    def set_model_field(self, name: str, env_ids: IndexLike, values: torch.Tensor | np.ndarray) -> None:
+        shape = self.field_shape(name)
+        ids_np = self.env_index(env_ids)
+        view = self._fields[name]
+        vals = torch.as_tensor(values).to(self.device, view.dtype)
+        self._check_rows(name, vals, len(ids_np), shape)
+        view[torch.as_tensor(ids_np, device=self.device)] = vals
+
+    def get_model_field(self, name: str) -> torch.Tensor:
+        self.field_shape(name)
+        return self._fields[name].clone()
+
+    def apply_force(self, env_ids: IndexLike, body: str | int, force: torch.Tensor) -> None:
+        ids_np = self.env_index(env_ids)
+        bid = self.body_id(body)
+        f = torch.as_tensor(force).to(self.device, self._xfrc.dtype)
+        if f.ndim != 2 or f.shape[0] != len(ids_np) or f.shape[1] not in (3, 6):
+            raise ValueError(f"force must have shape ({len(ids_np)}, 3) or ({len(ids_np)}, 6), got {tuple(f.shape)}")
+        ids = torch.as_tensor(ids_np, device=self.device)
+        self._xfrc[ids, bid, : f.shape[1]] = f
+        self._xfrc_pending = True
+
+    def contact_overflow(self) -> bool:
+        """True when a step needed more contacts or constraint rows than allocated."""
+        nacon = int(wp.to_torch(self.wd.nacon).max())
+        nefc = int(wp.to_torch(self.wd.nefc).max())
+        return nacon >= self.nconmax * self.num_envs or nefc >= self.njmax
