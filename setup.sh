@@ -7,11 +7,12 @@
 set -euo pipefail
 cd "$(dirname "$0")"
 
-task=${1:-install}
+usage="usage: ./setup.sh [install|train|test] [args...]   (default: install; env: PYTHON, VENV)"
+task=${1-install}
 [ $# -gt 0 ] && shift
 case "$task" in
   install|train|test) ;;
-  *) echo "usage: ./setup.sh [install|train|test] [args...]  (got '$task')" >&2; exit 2 ;;
+  *) echo "$usage  (got '$task')" >&2; exit 2 ;;
 esac
 
 PYTHON=${PYTHON:-python3}
@@ -36,8 +37,14 @@ if ! "$PY" -c 'import torch' 2>/dev/null; then
       || pip_install "torch==2.13.0+cpu" --extra-index-url https://download.pytorch.org/whl/cpu
   fi
 fi
-echo "[setup] installing legged_casters and its dependencies into $VENV"
-pip_install -e ".[dev]"
+# Reinstall only when the declared dependencies changed.
+stamp="$VENV/.legged_casters-installed"
+want=$(cat pyproject.toml | cksum)
+if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ] || ! "$PY" -c 'import legged_casters' 2>/dev/null; then
+  echo "[setup] installing legged_casters and its dependencies into $VENV"
+  pip_install -e ".[dev]"
+  echo "$want" > "$stamp"
+fi
 
 case "$task" in
   install) echo "[setup] done: activate with 'source $VENV/bin/activate'" ;;

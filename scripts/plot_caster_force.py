@@ -43,9 +43,8 @@ def main(argv: list[str] | None = None) -> int:
             if abs(phi) >= 15 and alpha != 0:
                 worst = max(worst, abs(sim[-1] - ref) / abs(ref))
             done += 1
-            print(f"\rmeasuring {done}/{total}", end="", file=sys.stderr)
+        print(f"measured alpha = {alpha:+d} deg ({done}/{total} points)", flush=True)
         ax1.plot(phis_sim, sim, "o", color=color, label=f"alpha = {alpha} deg")
-    print(file=sys.stderr)
     ax1.set_xlabel("caster deflection phi (deg)")
     ax1.set_ylabel("forward force F (N)")
     ax1.set_title(f"N = {RIG_LOAD:.0f} N: formula (lines) vs MuJoCo rig (dots)")

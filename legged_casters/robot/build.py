@@ -235,7 +235,7 @@ def _add_sensors(spec: mujoco.MjSpec, feet: str) -> None:
             _add_contact_sensor(spec, f"{leg}_foot_contact", f"{leg}_foot")
 
 
-def _ground_clearance(model: mujoco.MjModel, data: mujoco.MjData, feet: str) -> float:
+def ground_clearance(model: mujoco.MjModel, data: mujoco.MjData, feet: str) -> float:
     """Height of the lowest ground-touching point of the feet above z = 0."""
     lowest = np.inf
     for leg in go2.LEGS:
@@ -280,7 +280,7 @@ def _add_stand_key(spec: mujoco.MjSpec, feet: str) -> None:
     qpos[2] = 0.0
     data.qpos[:] = qpos
     mujoco.mj_kinematics(model, data)
-    data.qpos[2] = -_ground_clearance(model, data, feet)
+    data.qpos[2] = -ground_clearance(model, data, feet)
     data.ctrl[:] = go2.default_joint_positions()
     _settle(model, data, feet)
     qpos = data.qpos.copy()

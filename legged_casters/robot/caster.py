@@ -26,21 +26,24 @@ import mujoco
 class ContactParams:
     """Contact settings shared by the robot, the floor and the caster test rig.
 
-    Measured on the single-caster rig (docs/caster_physics.md): MuJoCo's default
-    contact is far too soft for a caster (the swivel's small effective mass makes the
-    constraint soft, the caster creeps); a stiff solref with solimp dmax 0.9999 and
-    impratio 10 hold the no-slip condition without a noslip solver (MuJoCo Warp has
-    none). condim 3: torsional friction (condim 4/6) would carry part of the swivel
-    moment and break the propulsion relation.
+    Measured on the single-caster rig and the whole robot (docs/caster_physics.md):
+    MuJoCo's default contact is far too soft for a caster (the swivel's small
+    effective mass makes the constraint soft, the caster creeps); a stiff solref and
+    a high impratio hold the no-slip condition without a noslip solver (MuJoCo Warp
+    has none). Elliptic cones with impratio 10, or solimp dmax >= 0.99, made the
+    robot explode or launch under random actions; pyramidal cones with impratio 20
+    and the default solimp did not (0 of 100 trials). condim 3: torsional friction
+    (condim 4/6) would carry part of the swivel moment and break the propulsion
+    relation.
     """
 
     timestep: float = 0.002  # solref's time constant must stay >= 2 * timestep
     solref: tuple[float, float] = (0.004, 1.0)
-    solimp: tuple[float, float, float, float, float] = (0.9, 0.9999, 0.001, 0.5, 2.0)
-    impratio: float = 10.0
+    solimp: tuple[float, float, float, float, float] = (0.9, 0.95, 0.001, 0.5, 2.0)
+    impratio: float = 20.0
     condim: int = 3
     friction: float = 1.0
-    cone: str = "elliptic"
+    cone: str = "pyramidal"
     integrator: str = "implicitfast"
     solver: str = "newton"
     iterations: int = 20
@@ -69,7 +72,7 @@ class CasterParams:
     mount_angle: float = 48.0
     swivel_damping: float = 0.03  # N m s/rad; the paper randomises U[0.01, 0.1]
     # 2e-4: below ~1.5e-4 the robot stance goes soft and the rig under-reads the
-    # propulsion force by >5%; at 1e-3 and above the casters shimmy (DESIGN.md).
+    # propulsion force by >5%; at 1e-3 and above the casters shimmy in a gait.
     swivel_armature: float = 2e-4
     wheel_damping: float = 0.0
     # Rolling resistance as Coulomb friction on the wheel axle: tau = c_rr * N * R
