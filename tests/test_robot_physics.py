@@ -134,3 +134,27 @@ def test_legs_tilt_the_swivel_axis_20_degrees_both_ways_while_standing(caster_mo
                 tilts.append(np.degrees(np.arctan2(z[0], z[2])))
     assert sx != 0 and tilts
     assert max(tilts) >= 20.0 and min(tilts) <= -20.0, (min(tilts), max(tilts))
+
+
+@pytest.mark.parametrize("feet", build.FOOT_KINDS)
+def test_survives_perturbed_starts_and_random_targets(feet, caster_model, point_model):
+    """Contact settings that are stiff enough for the caster rig can fling the robot
+    or blow up under abuse (docs/caster_physics.md); these must not."""
+    model = caster_model if feet == "caster" else point_model
+    data = mujoco.MjData(model)
+    nominal = np.array(go2.default_joint_positions())
+    adr = [model.joint(j).qposadr[0] for j in go2.ACTUATED_JOINTS]
+    every = int(round(0.02 / model.opt.timestep))
+    for seed in range(10):
+        rng = np.random.default_rng(seed)
+        mujoco.mj_resetDataKeyframe(model, data, 0)
+        data.qpos[adr] += rng.uniform(-0.2, 0.2, 12)
+        mujoco.mj_kinematics(model, data)
+        data.qpos[2] -= build.ground_clearance(model, data, feet)
+        data.qvel[:6] = rng.uniform(-0.3, 0.3, 6)
+        for i in range(int(1.5 / model.opt.timestep)):
+            if i % every == 0:
+                data.ctrl[:] = nominal + rng.normal(0.0, 0.3, 12)
+            mujoco.mj_step(model, data)
+            assert data.warning[mujoco.mjtWarning.mjWARN_BADQACC].number == 0, f"seed {seed}: simulation blew up"
+            assert data.qpos[2] < 0.6, f"seed {seed}: trunk flung to {data.qpos[2]:.2f} m at t={data.time:.2f}"
