@@ -187,13 +187,23 @@ def apply_overrides(cfg: T, overrides: list[str] | dict[str, Any]) -> T:
     """
     data = to_dict(cfg)
     for key, value in parse_overrides(overrides).items():
-        node, parts = data, key.split(".")
+        node, obj, parts = data, cfg, key.split(".")
         for depth, part in enumerate(parts):
-            if not isinstance(node, dict) or part not in node:
-                scope = ".".join(parts[:depth]) or type(cfg).__name__
-                allowed = sorted(node) if isinstance(node, dict) else []
-                raise ConfigError(f"unknown config field {key!r}: {scope} has no {part!r}; allowed: {allowed}")
-            if depth == len(parts) - 1:
+            last = depth == len(parts) - 1
+            scope = ".".join(parts[:depth]) or type(cfg).__name__
+            if dataclasses.is_dataclass(obj):
+                names = [f.name for f in dataclasses.fields(obj)]
+                if part not in names:
+                    raise ConfigError(f"unknown config field {key!r}: {scope} has no {part!r}; allowed: {names}")
+                obj = getattr(obj, part)
+            elif isinstance(obj, dict):
+                # A mapping field (e.g. reward scales) is open: new keys may be added.
+                if part not in node and not last:
+                    raise ConfigError(f"unknown config field {key!r}: {scope} has no {part!r}; has: {sorted(node)}")
+                obj = obj.get(part)
+            else:
+                raise ConfigError(f"unknown config field {key!r}: {scope} is a value, not a group")
+            if last:
                 node[part] = value
             else:
                 node = node[part]

@@ -52,7 +52,9 @@ def test_overrides_reach_nested_fields_and_keep_the_original():
         ("num_envs=0", "below the minimum 1"),
         ("num_envs=abc", "expected an integer"),
         ("sim_backend=gpu", "expected one of 'auto', 'cpu', 'warp'"),
-        ("commands.nope=1", "commands has no 'nope'; allowed: ['ranges', 'resampling_time']"),
+        ("commands.nope=1", "commands has no 'nope'; allowed: ['resampling_time', 'ranges']"),
+        ("num_envs.x=1", "num_envs is a value, not a group"),
+        ("reward_scales.tracking=abc", "expected a number"),
         ("commands.ranges.lin_vel_x=[1]", "expected 2 values"),
         ("commands.ranges.heading=3", "expected true or false"),
         ("num_envs", "must look like name.path=value"),
@@ -99,3 +101,8 @@ def test_registry_make_env_and_errors(monkeypatch):
         registry.make_env("toi")
     with pytest.raises(ConfigError):
         registry.make_env("toy", num_envs=-1)
+
+
+def test_mapping_fields_accept_new_keys():
+    cfg = apply_overrides(EnvCfg(), ["reward_scales.stand_still=-0.5"])
+    assert cfg.reward_scales == {"tracking": 1.0, "stand_still": -0.5}

@@ -13,7 +13,7 @@ from typing import Literal
 import torch
 
 from legged_casters.envs.base import LeggedEnv
-from legged_casters.envs.config import CommandRanges, CommandsCfg, LeggedEnvCfg, RewardsCfg
+from legged_casters.envs.config import CommandRanges, CommandsCfg, LeggedEnvCfg, RewardsCfg, TerminationCfg
 from legged_casters.robot import go2
 from legged_casters.train_config import TrainCfg
 
@@ -48,6 +48,8 @@ class Go2FlatCfg(LeggedEnvCfg):
         default_factory=lambda: CommandsCfg(ranges=CommandRanges((-1.0, 1.0), (-0.5, 0.5), (-1.0, 1.0)))
     )
     rewards: RewardsCfg = field(default_factory=_go2_flat_rewards)
+    # A flipped Go2 can rest on its folded legs without its trunk touching the floor.
+    termination: TerminationCfg = field(default_factory=lambda: TerminationCfg(max_tilt_deg=70.0))
     feet_air_time_target: float = field(default=0.5, metadata={"min": 0.0})
 
 

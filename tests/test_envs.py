@@ -1,0 +1,166 @@
+"""The base env and go2_flat on the CPU backend: resets, randomisation, finiteness,
+configs, and rsl_rl training plumbing."""
+
+import copy
+
+import numpy as np
+import pytest
+import torch
+from rsl_rl.runners import OnPolicyRunner
+
+from legged_casters import registry
+from legged_casters.config import dump_yaml, load_yaml
+from legged_casters.envs.go2_flat import Go2FlatCfg
+from legged_casters.robot import go2
+
+CPU = ["sim.backend=cpu"]
+
+
+@pytest.fixture(scope="module")
+def env():
+    e = registry.make_env("go2_flat", CPU, num_envs=8)
+    yield e
+    e.close()
+
+
+def test_observation_groups_and_layout(env):
+    obs = env.get_observations()
+    dims = env.observation_dims()
+    assert set(obs.keys()) == {"policy", "critic"}
+    assert obs["policy"].shape == (8, dims["policy"]) and obs["critic"].shape == (8, dims["critic"])
+    assert dims["policy"] == 3 + 3 + 3 + 3 + 12 + 12 + 12
+    names = [name for name, _, _ in env.obs_layout["policy"]]
+    assert names == list(env.OBSERVATIONS["policy"])
+    assert env.noise_vec.shape == (dims["policy"],)
+
+
+def test_reset_restores_only_the_selected_envs(env):
+    torch.manual_seed(0)
+    for _ in range(20):
+        env.step(torch.randn(env.num_envs, env.num_actions) * 0.5)
+    before = env.sim.qpos.clone()
+    ids = torch.tensor([1, 5])
+    env.reset_idx(ids)
+    after = env.sim.qpos
+    keep = [i for i in range(env.num_envs) if i not in (1, 5)]
+    assert torch.equal(after[keep], before[keep])
+    nominal = env.nominal_qpos.double()
+    for i in (1, 5):
+        # Joints within the reset noise of the nominal pose, upright, at the origin.
+        assert torch.allclose(after[i, env.joint_qadr], nominal[env.joint_qadr], atol=env.cfg.init_state.joint_pos_noise)
+        assert torch.allclose(after[i, 0:2], torch.zeros(2, dtype=after.dtype))
+        assert abs(after[i, 3:7].norm() - 1) < 1e-6 and abs(after[i, 4]) < 1e-6 and abs(after[i, 5]) < 1e-6
+    assert (env.episode_length_buf[ids] == 0).all()
+    assert (env.actions[ids] == 0).all()
+
+
+def test_randomised_parameters_land_in_the_backend(env):
+    dr = env.cfg.domain_rand
+    friction = env.sim.get_model_field("geom_friction")[:, :, 0]
+    assert friction.min() >= dr.friction_range[0] and friction.max() <= dr.friction_range[1]
+    assert friction[:, 0].unique().numel() == env.num_envs  # each env its own draw
+    mass = env.sim.get_model_field("body_mass")[:, env.trunk_id]
+    offset = mass - go2.TRUNK_MASS
+    assert offset.min() >= dr.added_mass_range[0] - 1e-6 and offset.max() <= dr.added_mass_range[1] + 1e-6
+    assert mass.unique().numel() == env.num_envs
+    kp = env.sim.get_model_field("actuator_gainprm")[:, :, 0]
+    bias = env.sim.get_model_field("actuator_biasprm")
+    assert torch.allclose(bias[:, :, 1], -kp)
+    ratio = kp / torch.tensor(go2.kp(), dtype=kp.dtype)
+    assert ratio.min() >= dr.kp_scale_range[0] - 1e-6 and ratio.max() <= dr.kp_scale_range[1] + 1e-6
+    assert ratio.std() > 0.01
+    kd_ratio = -bias[:, :, 2] / torch.tensor(go2.kd(), dtype=kp.dtype)
+    assert kd_ratio.min() >= dr.kd_scale_range[0] - 1e-6 and kd_ratio.max() <= dr.kd_scale_range[1] + 1e-6
+    com = env.sim.get_model_field("body_ipos")[:, env.trunk_id] - torch.tensor(env.model.body_ipos[env.trunk_id])
+    assert com.abs().max() <= dr.com_offset_range[1] + 1e-6 and com.std() > 0.005
+
+
+def test_joint_damping_patterns_randomise_matching_joints():
+    e = registry.make_env("go2_flat", CPU + ["domain_rand.joint_damping={'*_calf_joint': [0.2, 0.4]}"], num_envs=4)
+    damping = e.sim.get_model_field("dof_damping")
+    calf = [e.model.joint(f"{leg}_calf_joint").dofadr[0] for leg in go2.LEGS]
+    hip = [e.model.joint(f"{leg}_hip_joint").dofadr[0] for leg in go2.LEGS]
+    assert damping[:, calf].min() >= 0.2 and damping[:, calf].max() <= 0.4
+    assert (damping[:, hip] == 0).all()
+    with pytest.raises(ValueError, match="matches no joint"):
+        registry.make_env("go2_flat", CPU + ["domain_rand.joint_damping={'*_knee': [0.1, 0.2]}"], num_envs=2)
+
+
+def test_long_random_rollout_stays_finite():
+    e = registry.make_env("go2_flat", CPU + ["domain_rand.push_interval_s=0.5"], num_envs=16)
+    torch.manual_seed(1)
+    resets = 0
+    for _ in range(300):
+        obs, rew, dones, extras = e.step(torch.randn(e.num_envs, e.num_actions))
+        assert torch.isfinite(obs["policy"]).all() and torch.isfinite(obs["critic"]).all()
+        assert torch.isfinite(rew).all()
+        assert extras["time_outs"].dtype == torch.bool
+        resets += int(dones.sum())
+        if dones.any():
+            for key, value in extras["log"].items():
+                assert np.isfinite(float(value)), key
+    assert resets > 0  # random actions make robots fall, and fallen robots are reset
+    assert e.nonfinite_resets == 0
+
+
+def test_nan_actions_end_the_episode_instead_of_poisoning_the_batch(env):
+    actions = torch.zeros(env.num_envs, env.num_actions)
+    actions[2, 3] = float("nan")
+    obs, rew, dones, extras = env.step(actions)
+    assert dones[2] and not extras["time_outs"][2]
+    assert torch.isfinite(obs["policy"]).all() and torch.isfinite(rew).all()
+
+
+def test_reward_terms_are_looked_up_by_name_and_zero_weights_switch_off():
+    e = registry.make_env("go2_flat", CPU + ["rewards.scales.torques=0.0"], num_envs=2)
+    assert "torques" not in e.reward_terms and "tracking_lin_vel" in e.reward_terms
+    _, scale = e.reward_terms["tracking_lin_vel"]
+    assert scale == pytest.approx(1.0 * e.dt)
+    with pytest.raises(ValueError, match="unknown reward term 'typo'"):
+        registry.make_env("go2_flat", CPU + ["rewards.scales.typo=1.0"], num_envs=2)
+
+
+def test_tracking_reward_prefers_matching_velocity(env):
+    env.commands[:] = torch.tensor([0.5, 0.0, 0.0])
+    env.base_lin_vel = torch.zeros(env.num_envs, 3)
+    env.base_lin_vel[:4, 0] = 0.5
+    r = env._reward_tracking_lin_vel()
+    assert torch.allclose(r[:4], torch.ones(4)) and (r[4:] < 0.5).all()
+
+
+def test_env_config_round_trips_through_yaml(tmp_path):
+    _, _ = registry.task_configs("go2_flat")
+    cfg = registry.get_task("go2_flat").env_cfg
+    path = dump_yaml(cfg, tmp_path / "env.yaml")
+    back = load_yaml(Go2FlatCfg, path)
+    assert back == cfg
+
+
+def test_command_curriculum_widens_the_range_when_tracking_is_good():
+    e = registry.make_env(
+        "go2_flat", CPU + ["commands.curriculum=true", "commands.max_lin_vel_x=[-2.0, 2.0]"], num_envs=4
+    )
+    ids = torch.arange(4)
+    _, scale = e.reward_terms["tracking_lin_vel"]
+    e.episode_sums["tracking_lin_vel"][:] = scale * e.max_episode_length  # perfect tracking
+    e.common_step_counter = e.max_episode_length
+    e.update_curriculum(ids)
+    assert e.command_ranges["lin_vel_x"] == [-1.25, 1.25]
+    state = copy.deepcopy(e.get_state())
+    e2 = registry.make_env("go2_flat", CPU, num_envs=2)
+    e2.set_state(state)
+    assert e2.command_ranges["lin_vel_x"] == [-1.25, 1.25]
+
+
+def test_two_iterations_of_rsl_rl_ppo(tmp_path):
+    e = registry.make_env("go2_flat", CPU, num_envs=4)
+    train_cfg = registry.get_task("go2_flat").train_cfg
+    cfg = train_cfg.to_rsl_rl()
+    cfg["num_steps_per_env"] = 8
+    runner = OnPolicyRunner(e, copy.deepcopy(cfg), log_dir=str(tmp_path), device="cpu")
+    runner.learn(num_learning_iterations=2)
+    assert runner.current_learning_iteration == 1
+    saved = sorted(p.name for p in tmp_path.glob("model_*.pt"))
+    assert saved
+    state = torch.load(tmp_path / saved[-1], weights_only=True)
+    assert "actor_state_dict" in state or any("actor" in k for k in state)
