@@ -118,6 +118,7 @@ def test_cpu_warp_parity(model):
     warp = make_backend("warp", model, n, DECIMATION, "cpu")
     qc, vc = _rollout(cpu, qpos, qvel, targets)
     qw, vw = _rollout(warp, qpos, qvel, targets)
+    assert not warp.contact_overflow()
     cpu.close()
     qa, va = _adr(model, go2.ACTUATED_JOINTS, "q"), _adr(model, go2.ACTUATED_JOINTS, "v")
 
