@@ -77,6 +77,11 @@ class CpuBackend(SimBackend):
         self._state = np.empty((num_envs, self.nstate))
         init = initial_data(model)
         mujoco.mj_getState(model, init, self._state[0], _FULL)
+        if not (
+            np.array_equal(self._state[0, self._qpos_sl], init.qpos)
+            and np.array_equal(self._state[0, self._qvel_sl], init.qvel)
+        ):
+            raise RuntimeError("unexpected mjSTATE_FULLPHYSICS layout in this MuJoCo version")
         self._state[:] = self._state[0]
         self._state_out = np.empty((num_envs, decimation, self.nstate))
         self._sens_out = np.empty((num_envs, decimation, self.nsensordata))
