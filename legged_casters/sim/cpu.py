@@ -14,9 +14,11 @@ State lives in persistent numpy buffers; the torch tensors the backend exposes a
   `_state` after each step, `sensordata` is a view of the last substep's row;
 * `_control` (num_envs, decimation, ncontrol): the constant control repeated per substep.
 
-The rollout starts every call with a zero constraint-solver warmstart (it cannot
-hand the last substep's qacc_warmstart back); the Newton solver converges from there
-within its iterations, so this costs a little speed, not accuracy.
+The rollout cannot hand the constraint solver's last acceleration (mj_step's
+qacc_warmstart) back, so each call is warmstarted with the last substep's velocity
+change / dt instead. Against a plain mj_step loop this keeps the state within ~1e-5
+over 10 control steps (a zero warmstart: up to 6e-3, the solver stops at its
+tolerance from a different start).
 """
 
 from __future__ import annotations
@@ -75,11 +77,17 @@ class CpuBackend(SimBackend):
         self._state = np.empty((num_envs, self.nstate))
         init = initial_data(model)
         mujoco.mj_getState(model, init, self._state[0], _FULL)
+        if not (
+            np.array_equal(self._state[0, self._qpos_sl], init.qpos)
+            and np.array_equal(self._state[0, self._qvel_sl], init.qvel)
+        ):
+            raise RuntimeError("unexpected mjSTATE_FULLPHYSICS layout in this MuJoCo version")
         self._state[:] = self._state[0]
         self._state_out = np.empty((num_envs, decimation, self.nstate))
         self._sens_out = np.empty((num_envs, decimation, self.nsensordata))
         self._sens_out[:, -1] = init.sensordata
         self._ctrl = np.tile(init.ctrl, (num_envs, 1))
+        self._warmstart = np.tile(init.qacc_warmstart, (num_envs, 1))
         self._control = np.zeros((num_envs, decimation, self.nu))
         nxfrc = mujoco.mj_stateSize(model, _CTRL_XFRC)
         self._control_xfrc = np.zeros((num_envs, decimation, nxfrc))
@@ -148,9 +156,15 @@ class CpuBackend(SimBackend):
             control_spec=spec,
             skip_checks=True,
             nstep=self.decimation,
+            initial_warmstart=self._warmstart,
             state=self._state_out,
             sensordata=self._sens_out,
         )
+        # Warmstart of the next call: the rollout cannot return the solver's last qacc;
+        # the last substep's velocity change / dt is close to it (exact for Euler).
+        prev = self._state_out[:, -2] if self.decimation > 1 else self._state
+        np.subtract(self._state_out[:, -1, self._qvel_sl], prev[:, self._qvel_sl], out=self._warmstart)
+        self._warmstart /= self.physics_dt
         self._state[:] = self._state_out[:, -1]
         if self._xfrc_pending:
             self._xfrc[:] = 0.0
@@ -172,6 +186,7 @@ class CpuBackend(SimBackend):
             d.ctrl[:] = self._ctrl[env]
             mujoco.mj_forward(m, d)
             mujoco.mj_getState(m, d, self._state[env], _FULL)
+            self._warmstart[env] = d.qacc
             self._np_sens[env] = d.sensordata
         self._xfrc[ids] = 0.0
         self._refresh_device_copies()

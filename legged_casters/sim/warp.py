@@ -111,25 +111,42 @@ class WarpBackend(SimBackend):
 
     def _run(self, fn, graph_attr: str) -> None:
         with wp.ScopedDevice(self.wp_device):
-            if not self.use_graph:
+            if not self.wp_device.is_cuda:
                 fn()
                 return
-            graph = getattr(self, graph_attr)
-            if graph is None:
-                # Warp compiles and loads modules on first launch, which cannot happen
-                # inside a capture: run once for real, then capture.
-                live = [self._qpos, self._qvel, self._warmstart, self._sens, wp.to_torch(self.wd.time)]
-                if self._act is not None:
-                    live.append(self._act)
-                saved = [t.clone() for t in live]
+            # torch writes the inputs on its current stream, Warp runs on its own:
+            # order the two both ways around the launch.
+            torch_stream = wp.stream_from_torch(torch.cuda.current_stream(self.device))
+            warp_stream = wp.get_stream(self.wp_device)
+            warp_stream.wait_stream(torch_stream)
+            if not self.use_graph:
                 fn()
-                for t, s in zip(live, saved, strict=True):
-                    t.copy_(s)
-                with wp.ScopedCapture(device=self.wp_device) as capture:
-                    fn()
-                graph = capture.graph
-                setattr(self, graph_attr, graph)
-            wp.capture_launch(graph)
+            else:
+                graph = getattr(self, graph_attr)
+                if graph is None:
+                    graph = self._capture(fn)
+                    setattr(self, graph_attr, graph)
+                wp.capture_launch(graph, stream=warp_stream)
+            torch_stream.wait_stream(warp_stream)
+
+    def _capture(self, fn):
+        """Capture `fn` into a CUDA graph. Warp compiles and loads modules on first
+        launch, which cannot happen inside a capture: run once for real (restoring the
+        state afterwards), then capture."""
+        live = [self._qpos, self._qvel, self._warmstart, self._sens, wp.to_torch(self.wd.time)]
+        if self._act is not None:
+            live.append(self._act)
+        torch.cuda.synchronize(self.device)
+        saved = [t.clone() for t in live]
+        torch.cuda.synchronize(self.device)
+        fn()
+        wp.synchronize_device(self.wp_device)
+        for t, s in zip(live, saved, strict=True):
+            t.copy_(s)
+        torch.cuda.synchronize(self.device)
+        with wp.ScopedCapture(device=self.wp_device) as capture:
+            fn()
+        return capture.graph
 
     def step(self, ctrl: torch.Tensor) -> None:
         self._check_rows("ctrl", ctrl, self.num_envs, (self.nu,))
