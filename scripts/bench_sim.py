@@ -115,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
         "--impratio",
         type=float,
         default=None,
-        help="override opt.impratio (the committed 10 makes the caster robot unstable under random targets)",
+        help="override opt.impratio (to compare contact settings)",
     )
     args = p.parse_args(argv)
 
