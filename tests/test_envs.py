@@ -47,7 +47,8 @@ def test_reset_restores_only_the_selected_envs(env):
     nominal = env.nominal_qpos.double()
     for i in (1, 5):
         # Joints within the reset noise of the nominal pose, upright, at the origin.
-        assert torch.allclose(after[i, env.joint_qadr], nominal[env.joint_qadr], atol=env.cfg.init_state.joint_pos_noise)
+        noise = env.cfg.init_state.joint_pos_noise
+        assert torch.allclose(after[i, env.joint_qadr], nominal[env.joint_qadr], atol=noise)
         assert torch.allclose(after[i, 0:2], torch.zeros(2, dtype=after.dtype))
         assert abs(after[i, 3:7].norm() - 1) < 1e-6 and abs(after[i, 4]) < 1e-6 and abs(after[i, 5]) < 1e-6
     assert (env.episode_length_buf[ids] == 0).all()
@@ -164,3 +165,12 @@ def test_two_iterations_of_rsl_rl_ppo(tmp_path):
     assert saved
     state = torch.load(tmp_path / saved[-1], weights_only=True)
     assert "actor_state_dict" in state or any("actor" in k for k in state)
+
+
+def test_set_commands_holds_them_through_timers_and_resets():
+    e = registry.make_env("go2_flat", CPU + ["commands.resampling_time=0.1"], num_envs=3)
+    e.set_commands([0.6, -0.2, 0.3])
+    for _ in range(12):
+        e.step(torch.zeros(3, 12))
+    e.reset_idx(torch.tensor([1]))
+    assert torch.allclose(e.commands, torch.tensor([0.6, -0.2, 0.3]).expand(3, 3))

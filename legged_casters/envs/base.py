@@ -100,6 +100,8 @@ class LeggedEnv(VecEnv):
         self.rew_buf = torch.zeros(n, device=dev)
         self.last_joint_vel = torch.zeros(n, self.num_actions, device=dev)
         self.common_step_counter = 0
+        self.external_commands = False
+        """True: commands come from `set_commands` (play, deployment tests), never resampled."""
         self.extras: dict = {"log": {}}
         self.nonfinite_resets = 0
         ranges = self.cfg.commands.ranges
@@ -206,7 +208,14 @@ class LeggedEnv(VecEnv):
     def _post_physics_step(self) -> None:
         """Task hook: update task state after physics, before terminations and rewards."""
 
+    def set_commands(self, commands: torch.Tensor | list[float]) -> None:
+        """Command (vx, vy, wz) for all envs, or (num_envs, 3); switches off resampling."""
+        self.external_commands = True
+        self.commands[:] = torch.as_tensor(commands, dtype=torch.float32, device=self.device)
+
     def _resample_on_timer(self) -> None:
+        if self.external_commands:
+            return
         every = max(1, int(round(self.cfg.commands.resampling_time / self.dt)))
         ids = ((self.episode_length_buf % every) == 0).nonzero(as_tuple=False).flatten()
         if len(ids):
@@ -279,7 +288,8 @@ class LeggedEnv(VecEnv):
         qvel = torch.zeros(n, self.model.nv, device=self.device)
         qvel[:, 0:6] = _uniform(-init.base_vel_noise, init.base_vel_noise, (n, 6), self.device)
         self.sim.reset(env_ids, qpos, qvel)
-        self.resample_commands(env_ids)
+        if not self.external_commands:
+            self.resample_commands(env_ids)
         self.actions[env_ids] = 0.0
         self.last_actions[env_ids] = 0.0
         self.last_joint_vel[env_ids] = 0.0
