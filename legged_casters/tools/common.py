@@ -1,0 +1,365 @@
+"""What the three commands share: errors and exit codes, log folders, run selection,
+checkpoint files (atomic writes, weights-only loads), git state, config loading."""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import re
+import shlex
+import subprocess
+import sys
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from legged_casters import registry
+from legged_casters.config import ConfigError, apply_overrides, load_yaml
+
+EXIT_OK = 0
+EXIT_FAILURE = 1
+EXIT_USAGE = 2
+"""Bad flags or values: the same code argparse uses."""
+
+LOG_ROOT_ENV = "LEGGED_CASTERS_LOG_ROOT"
+PREFERRED_TASK = "caster_omni"
+RUN_FILE = "run.yaml"
+CHECKPOINT_RE = re.compile(r"^model_(\d+)\.pt$")
+RUN_DIR_RE = re.compile(r"^\d{4}-\d{2}-\d{2}_\d{2}-\d{2}-\d{2}(_.*)?$")
+
+
+class UsageError(Exception):
+    """A flag or value that is not allowed; the message says what is. Exit code 2."""
+
+
+class CheckpointError(Exception):
+    """A checkpoint that cannot be read or does not fit the task. Exit code 1."""
+
+
+def run_cli(fn: Callable[[], int], prog: str) -> int:
+    """Run a command body and turn the errors a user can fix into a message and an exit code."""
+    try:
+        return fn()
+    except (UsageError, ConfigError, registry.UnknownTaskError) as err:
+        print(f"{prog}: error: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    except CheckpointError as err:
+        print(f"{prog}: error: {err}", file=sys.stderr)
+        return EXIT_FAILURE
+
+
+# --- tasks and devices -----------------------------------------------------------------
+def default_task() -> str:
+    """caster_omni where it is registered, else the first registered task."""
+    tasks = registry.list_tasks()
+    if not tasks:
+        raise UsageError("no tasks are registered")
+    return PREFERRED_TASK if PREFERRED_TASK in tasks else tasks[0]
+
+
+def check_task(name: str) -> registry.TaskSpec:
+    return registry.get_task(name)  # UnknownTaskError lists the known tasks
+
+
+def resolve_device(device: str | None, backend: str) -> str:
+    """'auto' or None: cuda:<LOCAL_RANK> for the Warp backend on a CUDA machine, else cpu."""
+    if device in (None, "auto"):
+        if backend == "warp" and torch.cuda.is_available():
+            return f"cuda:{int(os.environ.get('LOCAL_RANK', '0'))}"
+        return "cpu"
+    try:
+        parsed = torch.device(device)
+    except (RuntimeError, ValueError):
+        raise UsageError(f"--device {device!r} is not a torch device; use auto, cpu, cuda or cuda:N") from None
+    if parsed.type == "cuda":
+        if not torch.cuda.is_available():
+            raise UsageError(f"--device {device}: CUDA is not available on this machine; use --device cpu")
+        if parsed.index is not None and parsed.index >= torch.cuda.device_count():
+            raise UsageError(f"--device {device}: this machine has {torch.cuda.device_count()} CUDA device(s)")
+    elif parsed.type != "cpu":
+        raise UsageError(f"--device {device}: only cpu and cuda devices are supported")
+    return str(parsed)
+
+
+# --- log folders and runs ------------------------------------------------------------------
+def log_root(flag: str | None, default: Path | str | None = None) -> Path:
+    """--log_root, else $LEGGED_CASTERS_LOG_ROOT, else `default` (the repo's logs/), else ./logs."""
+    if flag:
+        return Path(flag).expanduser().resolve()
+    if os.environ.get(LOG_ROOT_ENV):
+        return Path(os.environ[LOG_ROOT_ENV]).expanduser().resolve()
+    return Path(default).resolve() if default else (Path.cwd() / "logs").resolve()
+
+
+def new_run_dir(root: Path, experiment: str, run_name: str) -> Path:
+    stamp = datetime.datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
+    name = f"{stamp}_{run_name}" if run_name else stamp
+    path = root / experiment / name
+    suffix = 1
+    while path.exists():  # two runs started within one second
+        suffix += 1
+        path = root / experiment / f"{name}-{suffix}"
+    return path
+
+
+def checkpoints(run_dir: Path) -> list[tuple[int, Path]]:
+    """(iteration, path) of the run's model_<it>.pt files, oldest first."""
+    found = []
+    if run_dir.is_dir():
+        for p in run_dir.iterdir():
+            m = CHECKPOINT_RE.match(p.name)
+            if m and p.is_file():
+                found.append((int(m.group(1)), p))
+    return sorted(found)
+
+
+def list_runs(root: Path, experiment: str) -> list[Path]:
+    """Run folders of an experiment, oldest first (their names start with the date and time)."""
+    exp = root / experiment
+    if not exp.is_dir():
+        return []
+    return sorted(p for p in exp.iterdir() if p.is_dir() and RUN_DIR_RE.match(p.name))
+
+
+def find_run(root: Path, experiment: str, load_run: str | None) -> Path:
+    """The run folder named by --load_run (a name under the experiment, or a path), else
+    the newest run of the experiment that has a checkpoint."""
+    runs = list_runs(root, experiment)
+    if load_run:
+        for candidate in (Path(load_run).expanduser(), root / experiment / load_run):
+            if candidate.is_dir():
+                return candidate.resolve()
+        names = ", ".join(p.name for p in runs[-10:]) or "(none)"
+        raise UsageError(f"--load_run {load_run!r}: no such run under {root / experiment}; runs there: {names}")
+    with_ckpt = [r for r in runs if checkpoints(r)]
+    if not with_ckpt:
+        where = root / experiment
+        raise UsageError(
+            f"no run with a checkpoint under {where}; train one first (python train.py --experiment_name "
+            f"{experiment} ...), or pass --load_run NAME/PATH, or --log_root DIR"
+        )
+    return with_ckpt[-1]
+
+
+def find_checkpoint(run_dir: Path, checkpoint: str | None) -> Path:
+    """--checkpoint: an iteration (5), a file name (model_5.pt) or a path; default the newest."""
+    found = checkpoints(run_dir)
+    available = ", ".join(p.name for _, p in found[-10:]) or "(none)"
+    if checkpoint in (None, "", "-1", "latest"):
+        if not found:
+            raise UsageError(f"run {run_dir} has no checkpoint (model_<iteration>.pt)")
+        return found[-1][1]
+    candidates = [run_dir / f"model_{checkpoint}.pt"] if checkpoint.isdigit() else []
+    candidates += [run_dir / checkpoint, Path(checkpoint).expanduser()]
+    for c in candidates:
+        if c.is_file():
+            return c.resolve()
+    raise UsageError(f"--checkpoint {checkpoint!r}: not found in {run_dir}; checkpoints there: {available}")
+
+
+def read_run_info(run_dir: Path) -> dict:
+    import yaml
+
+    path = run_dir / RUN_FILE
+    if not path.is_file():
+        return {}
+    try:
+        return yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError:
+        return {}
+
+
+def _umask_mode() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+def write_text_atomic(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.chmod(tmp, _umask_mode())  # mkstemp creates 0600 files
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+# --- checkpoints -----------------------------------------------------------------------------
+def save_checkpoint_atomic(obj: dict, path: str | Path) -> Path:
+    """torch.save into a temporary file beside `path`, flushed to disk, then renamed over it:
+    a run killed mid-write leaves the previous file (or none), never a truncated one."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(obj, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, _umask_mode())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+REQUIRED_CHECKPOINT_KEYS = ("actor_state_dict", "critic_state_dict", "optimizer_state_dict", "iter")
+
+
+def load_checkpoint(path: str | Path, map_location: str = "cpu") -> dict:
+    """A training checkpoint, loaded with weights_only=True (no code from the file is run)."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {path} does not exist")
+    try:
+        data = torch.load(path, weights_only=True, map_location=map_location)
+    except Exception as err:  # truncated zip, not a torch file, disallowed pickle content...
+        raise CheckpointError(
+            f"checkpoint {path} cannot be read ({type(err).__name__}: {str(err).splitlines()[0][:200]}); "
+            "the file is corrupt or not an rsl_rl checkpoint; pick another with --checkpoint"
+        ) from None
+    if not isinstance(data, dict) or any(k not in data for k in REQUIRED_CHECKPOINT_KEYS):
+        keys = sorted(data) if isinstance(data, dict) else type(data).__name__
+        raise CheckpointError(f"checkpoint {path} is not an rsl_rl training checkpoint (has {keys})")
+    return data
+
+
+# --- configs of a run ------------------------------------------------------------------------
+def run_configs(spec: registry.TaskSpec, run_dir: Path | None) -> tuple[Any, Any]:
+    """The env and train configs a run was trained with (its env.yaml / train.yaml), or the
+    task's defaults where the run has none."""
+    import copy
+
+    env_cfg, train_cfg = copy.deepcopy(spec.env_cfg), copy.deepcopy(spec.train_cfg)
+    if run_dir is not None:
+        for name, cls, attr in (("env.yaml", type(spec.env_cfg), "env"), ("train.yaml", type(spec.train_cfg), "train")):
+            path = run_dir / name
+            if not path.is_file():
+                print(f"[{attr} config] {path} missing: using the task's defaults", file=sys.stderr)
+                continue
+            try:
+                loaded = load_yaml(cls, path)
+            except ConfigError as err:
+                raise UsageError(f"{path} does not fit task {spec.name!r}'s config: {err}") from None
+            if attr == "env":
+                env_cfg = loaded
+            else:
+                train_cfg = loaded
+    return env_cfg, train_cfg
+
+
+def with_overrides(cfg: Any, overrides: list[str] | dict, what: str) -> Any:
+    if not overrides:
+        return cfg
+    try:
+        return apply_overrides(cfg, overrides)
+    except ConfigError as err:
+        raise ConfigError(f"{what}: {err}") from None
+
+
+# --- git state and command line --------------------------------------------------------------
+def _git(repo: Path, *args: str) -> str | None:
+    try:
+        out = subprocess.run(["git", "-C", str(repo), *args], capture_output=True, text=True, timeout=30)
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    return out.stdout if out.returncode == 0 else None
+
+
+def git_state(repo: Path) -> tuple[dict, str]:
+    """({commit, branch, dirty, repo}, diff text against HEAD incl. untracked file names)."""
+    commit = _git(repo, "rev-parse", "HEAD")
+    if commit is None:
+        return {"repo": str(repo), "commit": None, "note": "not a git repository (or git missing)"}, ""
+    status = _git(repo, "status", "--porcelain") or ""
+    diff = _git(repo, "diff", "HEAD") or ""
+    untracked = [line[3:] for line in status.splitlines() if line.startswith("??")]
+    if untracked:
+        diff += "\n# untracked files:\n" + "\n".join(f"#   {u}" for u in untracked) + "\n"
+    info = {
+        "repo": str(repo),
+        "commit": commit.strip(),
+        "branch": (_git(repo, "rev-parse", "--abbrev-ref", "HEAD") or "").strip(),
+        "dirty": bool(status.strip()),
+    }
+    return info, diff
+
+
+def command_line(argv: list[str] | None) -> str:
+    args = sys.argv[1:] if argv is None else argv
+    script = sys.argv[0] if argv is None else "train.py"
+    return shlex.join([sys.executable, script, *args])
+
+
+# --- shared flags ---------------------------------------------------------------------------
+def add_run_selection_flags(parser: argparse.ArgumentParser) -> None:
+    g = parser.add_argument_group("which checkpoint")
+    g.add_argument("--task", help="registered task (default: caster_omni when registered, else the first)")
+    g.add_argument("--experiment_name", help="folder under the log root (default: the task's train config)")
+    g.add_argument("--load_run", help="run folder name under logs/<experiment>, or a path (default: newest)")
+    g.add_argument("--checkpoint", help="iteration number, model_<it>.pt or a path (default: newest)")
+    g.add_argument("--log_root", help=f"root of the run folders (default: ${LOG_ROOT_ENV} or <repo>/logs)")
+
+
+# --- a checkpoint to evaluate (play, export) ---------------------------------------------------
+@dataclass
+class Selection:
+    task: str
+    spec: registry.TaskSpec
+    run_dir: Path
+    ckpt_path: Path
+    ckpt: dict
+    env_cfg: Any
+    train_cfg: Any
+
+
+def select_task(args: argparse.Namespace) -> str:
+    """--task, else the task recorded in --load_run's run.yaml, else the default task."""
+    if args.task:
+        return args.task
+    if getattr(args, "load_run", None) and Path(args.load_run).expanduser().is_dir():
+        recorded = read_run_info(Path(args.load_run).expanduser()).get("task")
+        if recorded:
+            return recorded
+    return default_task()
+
+
+def select_checkpoint(args: argparse.Namespace, default_log_root: Path | None) -> Selection:
+    """Resolve --task/--experiment_name/--load_run/--checkpoint/--log_root to a loaded checkpoint
+    and the configs its run was trained with. Raises UsageError / CheckpointError."""
+    task = select_task(args)
+    spec = check_task(task)
+    root = log_root(args.log_root, default_log_root)
+    experiment = args.experiment_name or spec.train_cfg.experiment_name
+    run_dir = find_run(root, experiment, args.load_run)
+    ckpt_path = find_checkpoint(run_dir, args.checkpoint)
+    ckpt = load_checkpoint(ckpt_path)
+    saved_task = (ckpt.get("infos") or {}).get("task")
+    if saved_task and saved_task != task:
+        raise UsageError(f"checkpoint {ckpt_path} belongs to task {saved_task!r}; pass --task {saved_task}")
+    env_cfg, train_cfg = run_configs(spec, run_dir)
+    return Selection(task, spec, run_dir, ckpt_path, ckpt, env_cfg, train_cfg)
+
+
+EVAL_OVERRIDES = {"noise.enabled": False, "domain_rand.push_robots": False}
+"""Evaluation envs: no observation noise, no random pushes."""
+
+
+def eval_env_cfg(env_cfg: Any, num_envs: int, overrides: list[str] | None, backend: str = "cpu") -> Any:
+    cfg = with_overrides(env_cfg, {**EVAL_OVERRIDES, "num_envs": num_envs, "sim.backend": backend}, "eval env")
+    cfg = with_overrides(cfg, overrides or [], "--set")
+    return with_overrides(cfg, {"sim.device": "cpu" if backend == "cpu" else cfg.sim.device}, "eval env")
+
+
+def make_eval_env(sel: Selection, num_envs: int, overrides: list[str] | None, backend: str = "cpu"):
+    return sel.spec.env_class(eval_env_cfg(sel.env_cfg, num_envs, overrides, backend))

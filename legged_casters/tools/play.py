@@ -1,0 +1,434 @@
+"""play.py: run a policy on a few robots with scripted commands; video + plots, or the viewer.
+
+    python play.py --task go2_flat                      # newest checkpoint of the task
+    python play.py --profile steps --duration 10        # stand, -0.6 m/s, +0.6 m/s (paper Fig. 6)
+    python play.py --policy logs/.../exported/policy.onnx
+    python play.py --task caster_omni --policy zero --profile modes
+
+Headless (no DISPLAY, or --headless): an mp4 from MuJoCo's offscreen renderer (EGL,
+else OSMesa) following robot 0, and PNG plots of robot 0: commanded vs measured vx, vy,
+wz; joint angles; for caster tasks the swivel angles and posture errors. With a display
+(or --viewer): MuJoCo's passive viewer. Outputs go to <run>/play/ (or --out).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+
+from legged_casters.robot import build, go2
+from legged_casters.tools import common, render
+from legged_casters.tools.common import CheckpointError, UsageError
+
+PROG = "play.py"
+PROFILES = ("constant", "steps", "slalom", "modes")
+DEFAULT_DURATION = {"constant": 8.0, "steps": 10.0, "slalom": 12.0, "modes": 12.0}
+MODE_SEQUENCE = (("4WD", (0, 0, 0, 0)), ("FWD", (0, 0, 1, 1)), ("RWD", (1, 1, 0, 0)))
+"""4WD -> FWD -> RWD: mode masks (FL, FR, RL, RR), 1 = that caster is not driven."""
+
+
+# --- command profiles ----------------------------------------------------------------------------
+@dataclass
+class Profile:
+    name: str
+    duration: float
+    cmd: tuple[float, float, float]
+
+    def at(self, t: float) -> tuple[tuple[float, float, float], tuple[str, tuple[int, ...]] | None]:
+        """(vx, vy, wz) command and (mode name, mask) or None at time t."""
+        vx, vy, wz = self.cmd
+        if self.name == "constant":
+            return (vx, vy, wz), None
+        if self.name == "steps":  # paper Fig. 6: stand ~2 s, backward -0.6 m/s, forward +0.6 m/s
+            stand = min(2.0, self.duration / 5)
+            if t < stand:
+                return (0.0, 0.0, 0.0), None
+            half = stand + (self.duration - stand) / 2
+            return ((-0.6 if t < half else 0.6), 0.0, 0.0), None
+        if self.name == "slalom":  # forward with a lateral command that alternates every 2 s
+            side = 1.0 if int(t // 2.0) % 2 == 0 else -1.0
+            return (vx, side * 0.4, 0.0), None
+        if self.name == "modes":  # the same command through 4WD -> FWD -> RWD
+            idx = min(int(t / (self.duration / len(MODE_SEQUENCE))), len(MODE_SEQUENCE) - 1)
+            return (vx, vy, wz), MODE_SEQUENCE[idx]
+        raise ValueError(self.name)
+
+
+# --- policies --------------------------------------------------------------------------------------
+@dataclass
+class PolicySource:
+    kind: str  # checkpoint | torchscript | onnx | zero | random
+    task: str
+    spec: object
+    env_cfg: object
+    train_cfg: object
+    out_dir: Path
+    label: str
+    selection: common.Selection | None = None
+    path: Path | None = None
+    obs_dim: int | None = None
+
+
+def _resolve_source(args: argparse.Namespace, default_log_root: Path | None) -> PolicySource:
+    root = common.log_root(args.log_root, default_log_root)
+    if args.policy in (None, "checkpoint"):
+        sel = common.select_checkpoint(args, default_log_root)
+        out = Path(args.out) if args.out else sel.run_dir / "play"
+        label = f"{sel.ckpt_path.stem}"
+        return PolicySource("checkpoint", sel.task, sel.spec, sel.env_cfg, sel.train_cfg, out, label, selection=sel)
+    if args.policy in ("zero", "random"):
+        task = common.select_task(args)
+        spec = common.check_task(task)
+        env_cfg, train_cfg = common.run_configs(spec, None)
+        experiment = args.experiment_name or spec.train_cfg.experiment_name
+        out = Path(args.out) if args.out else root / experiment / f"play_{args.policy}"
+        return PolicySource(args.policy, task, spec, env_cfg, train_cfg, out, args.policy)
+    path = Path(args.policy).expanduser()
+    if path.suffix not in (".pt", ".onnx"):
+        raise UsageError(f"--policy {args.policy!r}: expected zero, random, or an exported policy.pt / policy.onnx")
+    if not path.is_file():
+        raise UsageError(f"--policy {path}: no such file")
+    meta_path = path.with_suffix(".yaml")
+    meta = {}
+    if meta_path.is_file():
+        meta = yaml.safe_load(meta_path.read_text()) or {}
+    task = args.task or meta.get("task") or common.default_task()
+    if meta.get("task") and meta["task"] != task:
+        raise UsageError(f"{path} was exported for task {meta['task']!r}, not {task!r}")
+    spec = common.check_task(task)
+    # An export in <run>/exported/ plays with its run's configs.
+    run_dir = path.parent.parent if (path.parent.parent / "env.yaml").is_file() else None
+    env_cfg, train_cfg = common.run_configs(spec, run_dir)
+    out = Path(args.out) if args.out else path.parent / "play"
+    kind = "torchscript" if path.suffix == ".pt" else "onnx"
+    dim = (meta.get("observation") or {}).get("dim")
+    return PolicySource(kind, task, spec, env_cfg, train_cfg, out, path.stem, path=path, obs_dim=dim)
+
+
+def _make_policy(src: PolicySource, env) -> Callable:
+    dim = env.observation_dims()["policy"]
+    if src.obs_dim is not None and src.obs_dim != dim:
+        raise CheckpointError(f"{src.path} expects {src.obs_dim} observations; task {src.task} gives {dim}")
+    if src.kind == "checkpoint":
+        from legged_casters.tools.export import load_actor
+
+        sel = src.selection
+        actor = load_actor(env, sel.train_cfg, sel.ckpt, sel.ckpt_path)
+        return lambda obs: actor(obs)
+    if src.kind == "torchscript":
+        try:
+            module = torch.jit.load(str(src.path), map_location="cpu")
+        except RuntimeError as err:
+            raise CheckpointError(f"{src.path} is not a TorchScript policy: {str(err).splitlines()[0]}") from None
+        return lambda obs: module(obs["policy"])
+    if src.kind == "onnx":
+        import onnxruntime as ort
+
+        try:
+            sess = ort.InferenceSession(str(src.path), providers=["CPUExecutionProvider"])
+        except Exception as err:
+            raise CheckpointError(f"{src.path} is not a readable ONNX policy: {err}") from None
+        name = sess.get_inputs()[0].name
+        return lambda obs: torch.from_numpy(sess.run(None, {name: obs["policy"].cpu().numpy()})[0])
+    if src.kind == "zero":
+        return lambda obs: torch.zeros(env.num_envs, env.num_actions)
+    gen = torch.Generator().manual_seed(0)
+    return lambda obs: torch.rand(env.num_envs, env.num_actions, generator=gen) * 2 - 1
+
+
+# --- recording and plots ---------------------------------------------------------------------------
+class Recorder:
+    def __init__(self):
+        self.rows: dict[str, list] = {}
+
+    def add(self, **values) -> None:
+        for k, v in values.items():
+            self.rows.setdefault(k, []).append(np.asarray(v, dtype=np.float64))
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {k: np.stack(v) for k, v in self.rows.items()}
+
+
+def _smooth(x: np.ndarray, n: int) -> np.ndarray:
+    if n <= 1 or len(x) < n:
+        return x
+    kernel = np.ones(n) / n
+    return np.convolve(np.pad(x, (n // 2, n - 1 - n // 2), mode="edge"), kernel, mode="valid")
+
+
+def write_plots(data: dict[str, np.ndarray], out: Path, prefix: str, title: str, dt: float) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = data["t"]
+    paths = []
+    n_avg = max(1, int(round(0.2 / dt)))
+    fig, axes = plt.subplots(3, 1, figsize=(9, 7), sharex=True)
+    for ax, i, label, unit in zip(axes, range(3), ("vx", "vy", "wz"), ("m/s", "m/s", "rad/s"), strict=True):
+        ax.plot(t, data["measured"][:, i], color="tab:blue", alpha=0.3, lw=0.8, label="measured")
+        ax.plot(t, _smooth(data["measured"][:, i], n_avg), color="tab:blue", lw=1.5, label="measured (0.2 s mean)")
+        ax.plot(t, data["command"][:, i], color="k", ls="--", lw=1.5, label="command")
+        ax.set_ylabel(f"{label} [{unit}]")
+        ax.grid(alpha=0.3)
+    axes[0].legend(loc="upper right", fontsize=8)
+    axes[0].set_title(f"{title}: commanded vs measured (trunk frame, robot 0)")
+    axes[-1].set_xlabel("time [s]")
+    _mark_modes(axes, data)
+    paths.append(_save(fig, out / f"{prefix}_velocity.png"))
+
+    fig, axes = plt.subplots(4, 1, figsize=(9, 9), sharex=True)
+    for leg_i, (ax, leg) in enumerate(zip(axes, go2.LEGS, strict=True)):
+        for k, kind in enumerate(go2.JOINT_KINDS):
+            ax.plot(t, data["joint_pos"][:, 3 * leg_i + k], label=kind)
+        ax.set_ylabel(f"{leg} [rad]")
+        ax.grid(alpha=0.3)
+    axes[0].legend(loc="upper right", fontsize=8, ncol=3)
+    axes[0].set_title(f"{title}: actuated joint angles (robot 0)")
+    axes[-1].set_xlabel("time [s]")
+    _mark_modes(axes, data)
+    paths.append(_save(fig, out / f"{prefix}_joints.png"))
+
+    if "phi" in data:
+        fig, axes = plt.subplots(4, 1, figsize=(9, 10), sharex=True)
+        series = (
+            ("phi", data["phi"], "swivel angle phi [rad]"),
+            ("cos", np.cos(data["phi"]), "cos(phi)"),
+            ("dz", data["theta_diffz"], "theta_diffz [rad]"),
+            ("dphi", data["theta_diffphi"], "theta_diffphi [rad]"),
+        )
+        for ax, (_, values, label) in zip(axes, series, strict=True):
+            for leg_i, leg in enumerate(go2.LEGS):
+                ax.plot(t, values[:, leg_i], label=leg, lw=1.0)
+            ax.set_ylabel(label)
+            ax.grid(alpha=0.3)
+        axes[0].legend(loc="upper right", fontsize=8, ncol=4)
+        axes[0].set_title(f"{title}: casters (robot 0)")
+        axes[-1].set_xlabel("time [s]")
+        _mark_modes(axes, data)
+        paths.append(_save(fig, out / f"{prefix}_casters.png"))
+    return paths
+
+
+def _mark_modes(axes, data) -> None:
+    if "mode" not in data:
+        return
+    mode = data["mode"]
+    changes = np.nonzero(np.any(np.diff(mode, axis=0) != 0, axis=1))[0]
+    for c in changes:
+        for ax in axes:
+            ax.axvline(data["t"][c + 1], color="tab:red", ls=":", lw=1)
+
+
+def _save(fig, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    return path
+
+
+# --- the command -----------------------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog=PROG,
+        description="Run a policy on a few robots with scripted commands: video + plots, or the viewer.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    common.add_run_selection_flags(p)
+    p.add_argument(
+        "--policy",
+        help="checkpoint (default: from --load_run/--checkpoint), zero, random, or an exported policy.pt/.onnx",
+    )
+    p.add_argument("--num_envs", type=int, default=2, help="robots (drawn side by side; plots show robot 0)")
+    p.add_argument("--profile", choices=PROFILES, default="steps", help="scripted commands")
+    p.add_argument("--duration", type=float, help="seconds (default: constant 8, steps 10, slalom 12, modes 12)")
+    p.add_argument(
+        "--cmd",
+        type=float,
+        nargs=3,
+        default=(0.5, 0.0, 0.0),
+        metavar=("VX", "VY", "WZ"),
+        help="command of the constant profile (vx also for slalom and modes)",
+    )
+    p.add_argument("--sim_backend", choices=("cpu", "warp"), default="cpu", help="play runs on the CPU by default")
+    p.add_argument("--headless", action="store_true", help="video + plots even with a display")
+    p.add_argument("--viewer", action="store_true", help="MuJoCo's interactive viewer (needs a display)")
+    p.add_argument("--no_video", action="store_true", help="headless: write only the plots")
+    p.add_argument("--width", type=int, default=640)
+    p.add_argument("--height", type=int, default=480)
+    p.add_argument("--fps", type=int, default=25, help="video frames per second (real time)")
+    p.add_argument("--fast_render", action="store_true", help="no shadows or reflections (~3x faster on a CPU)")
+    p.add_argument("--out", help="output folder (default: <run>/play)")
+    p.add_argument(
+        "--set",
+        dest="env_set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override an env config field (repeatable)",
+    )
+    return p
+
+
+def play(args: argparse.Namespace, default_log_root: Path | None) -> int:
+    # --- checks before the simulation starts ------------------------------------------------------
+    if args.num_envs < 1:
+        raise UsageError(f"--num_envs must be at least 1, got {args.num_envs}")
+    if args.duration is not None and not args.duration > 0:
+        raise UsageError(f"--duration must be positive, got {args.duration}")
+    if args.viewer and args.headless:
+        raise UsageError("--viewer and --headless exclude each other")
+    if args.width < 16 or args.height < 16 or args.fps < 1:
+        raise UsageError("--width/--height must be at least 16 and --fps at least 1")
+    headless = args.headless or (not args.viewer and not os.environ.get("DISPLAY"))
+    if args.viewer and not os.environ.get("DISPLAY"):
+        raise UsageError("--viewer needs a display (DISPLAY is not set); leave it out to write a video")
+    src = _resolve_source(args, default_log_root)
+    if args.profile == "modes" and not hasattr(src.spec.env_class, "set_mode"):
+        raise UsageError(f"--profile modes needs a task with propulsion modes (set_mode); {src.task} has none")
+    env_cfg = common.eval_env_cfg(src.env_cfg, args.num_envs, args.env_set, args.sim_backend)
+    gl_backend = None
+    if headless and not args.no_video:
+        gl_backend, errors = render.probe_gl_backend()
+        if gl_backend is None:
+            detail = "; ".join(f"{k}: {v}" for k, v in errors.items())
+            raise UsageError(f"{render.INSTALL_HINT} ({detail})")
+    profile = Profile(args.profile, args.duration or DEFAULT_DURATION[args.profile], tuple(args.cmd))
+
+    # --- simulation --------------------------------------------------------------------------------
+    env = src.spec.env_class(env_cfg)
+    try:
+        policy = _make_policy(src, env)
+        return _run(args, src, env, policy, profile, headless, gl_backend)
+    finally:
+        env.close()
+
+
+def _apply(env, cmd, mode) -> None:
+    env.set_commands(list(cmd))
+    if mode is not None:
+        env.set_mode(torch.tensor(mode[1], dtype=torch.float32, device=env.device).expand(env.num_envs, 4).clone())
+
+
+def _run(args, src: PolicySource, env, policy, profile: Profile, headless: bool, gl_backend: str | None) -> int:
+    out = src.out_dir
+    out.mkdir(parents=True, exist_ok=True)
+    prefix = f"{src.label}_{profile.name}"
+    title = f"{src.task} ({src.label}), profile {profile.name}"
+    dt = env.dt
+    steps = int(math.ceil(profile.duration / dt))
+    has_caster = hasattr(env, "caster_state")
+
+    cmd, mode = profile.at(0.0)
+    _apply(env, cmd, mode)
+    obs = env.reset()
+
+    renderer = writer = viewer = None
+    render_model = build.MODEL_FILES[env.cfg.robot]
+    frame_every = max(1, int(round(1.0 / (args.fps * dt))))
+    video_path = out / f"{prefix}.mp4"
+    if headless and gl_backend:
+        import imageio.v2 as imageio
+
+        renderer = render.FollowRenderer(
+            render_model, gl_backend, args.width, args.height, num_robots=env.num_envs, fast=args.fast_render
+        )
+        writer = imageio.get_writer(
+            str(video_path), fps=1.0 / (frame_every * dt), codec="libx264", quality=7, macro_block_size=8
+        )
+    elif not headless:
+        import mujoco
+        import mujoco.viewer
+
+        vmodel = mujoco.MjModel.from_xml_path(str(render_model))
+        vdata = mujoco.MjData(vmodel)
+        viewer = mujoco.viewer.launch_passive(vmodel, vdata)
+        viewer.cam.type = mujoco.mjtCamera.mjCAMERA_TRACKING
+        viewer.cam.trackbodyid = vmodel.body(go2.TRUNK_BODY).id
+        viewer.cam.distance = 2.0
+
+    rec = Recorder()
+    resets = 0
+    wall0 = time.time()
+    try:
+        for k in range(steps):
+            t = k * dt
+            new_cmd, new_mode = profile.at(t)
+            if new_cmd != cmd or new_mode != mode:
+                cmd, mode = new_cmd, new_mode
+                _apply(env, cmd, mode)
+                obs = env.compute_observations()  # the policy sees the new command now
+            with torch.no_grad():
+                actions = policy(obs)
+            obs, _, dones, _ = env.step(actions)
+            resets += int(dones[0])
+            row = {
+                "t": t + dt,
+                "command": env.commands[0].cpu().numpy(),
+                "measured": np.array(
+                    [float(env.base_lin_vel[0, 0]), float(env.base_lin_vel[0, 1]), float(env.base_ang_vel[0, 2])]
+                ),
+                "joint_pos": env.joint_pos[0].cpu().numpy(),
+                "actions": env.actions[0].cpu().numpy(),
+                "base_pos": env.base_pos[0].cpu().numpy(),
+                "done": float(dones[0]),
+            }
+            if mode is not None:
+                row["mode"] = np.asarray(mode[1], dtype=float)
+            if has_caster:
+                state = env.caster_state()
+                for key in ("phi", "theta_diffz", "theta_diffphi"):
+                    row[key] = state[key][0].detach().cpu().numpy()
+            rec.add(**row)
+            if renderer is not None and k % frame_every == 0:
+                c = env.commands[0].tolist()
+                text = f"t {t + dt:5.2f} s  cmd vx {c[0]:+.2f} vy {c[1]:+.2f} wz {c[2]:+.2f}"
+                if mode is not None:
+                    text += f"  {mode[0]}"
+                writer.append_data(renderer.render(env.sim.qpos.cpu().double().numpy(), text))
+            if viewer is not None:
+                if not viewer.is_running():
+                    break
+                vdata.qpos[:] = env.sim.qpos[0].cpu().double().numpy()
+                mujoco.mj_forward(vmodel, vdata)
+                viewer.sync()
+                time.sleep(max(0.0, wall0 + (k + 1) * dt - time.time()))
+    finally:
+        if writer is not None:
+            writer.close()
+        if renderer is not None:
+            renderer.close()
+        if viewer is not None:
+            viewer.close()
+
+    data = rec.arrays()
+    np.savez_compressed(out / f"{prefix}_data.npz", **data)
+    paths = write_plots(data, out, prefix, title, dt)
+    if renderer is not None:
+        paths.insert(0, video_path)
+    err = np.abs(data["measured"] - data["command"]).mean(axis=0)
+    print(
+        f"[{PROG}] {src.task} ({src.label}) profile {profile.name}: {len(data['t'])} steps ({profile.duration:.1f} s "
+        f"simulated in {time.time() - wall0:.1f} s), robot 0 resets {resets}, mean |measured - command| "
+        f"vx {err[0]:.3f} vy {err[1]:.3f} wz {err[2]:.3f}"
+    )
+    for p in paths:
+        print(f"[{PROG}] wrote {p}")
+    return common.EXIT_OK
+
+
+def main(argv: list[str] | None = None, default_log_root: Path | str | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return common.run_cli(lambda: play(args, Path(default_log_root) if default_log_root else None), PROG)

@@ -1,0 +1,260 @@
+"""train.py: PPO (rsl_rl OnPolicyRunner) on a registered task, with runs, resume and safe checkpoints.
+
+    python train.py --task go2_flat --max_iterations 300 --set commands.ranges.lin_vel_x=[-2,2]
+
+Each run lives in logs/<experiment>/<YYYY-mm-dd_HH-MM-SS>_<run_name>/: model_<it>.pt
+checkpoints, TensorBoard events, env.yaml and train.yaml, run.yaml (task, experiment),
+git.yaml + git.diff (code state), command.txt (every invocation, resumes appended).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import datetime
+import io
+import math
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+import yaml
+from rsl_rl.runners import OnPolicyRunner
+
+from legged_casters.config import dump_yaml
+from legged_casters.envs.base import resolve_backend
+from legged_casters.sim.base import BACKEND_KINDS
+from legged_casters.tools import common
+from legged_casters.tools.common import CheckpointError, UsageError
+
+PROG = "train.py"
+
+
+class CheckpointingRunner(OnPolicyRunner):
+    """OnPolicyRunner whose checkpoints are written atomically and carry the env's state
+    (curriculum) and the task name, so that a resume restores them."""
+
+    def __init__(self, env, train_cfg: dict, log_dir: str | None, device: str, task: str):
+        self.task = task
+        super().__init__(env, train_cfg, log_dir=log_dir, device=device)
+
+    def save(self, path: str, infos: dict | None = None) -> None:
+        saved = self.alg.save()
+        saved["iter"] = self.current_learning_iteration
+        saved["infos"] = {
+            **(infos or {}),
+            "task": self.task,
+            "env_state": self.env.get_state(),
+            "saved_at": datetime.datetime.now().isoformat(timespec="seconds"),
+        }
+        common.save_checkpoint_atomic(saved, path)
+        self.logger.save_model(path, self.current_learning_iteration)
+
+    def load_checkpoint(self, ckpt: dict, path: Path) -> None:
+        """Policy, critic, normaliser, optimizer and iteration from a weights-only loaded checkpoint."""
+        infos = ckpt.get("infos") or {}
+        saved_task = infos.get("task")
+        if saved_task and saved_task != self.task:
+            raise CheckpointError(f"checkpoint {path} was trained on task {saved_task!r}, not {self.task!r}")
+        try:
+            self.alg.load(ckpt, None, True)
+        except (RuntimeError, KeyError, ValueError) as err:
+            first = str(err).strip().splitlines()[0][:300]
+            raise CheckpointError(f"checkpoint {path} does not fit this task's networks: {first}") from None
+        # rsl_rl stores the last finished iteration; continue with the next one.
+        self.current_learning_iteration = int(ckpt["iter"]) + 1
+        state = infos.get("env_state")
+        if state:
+            try:
+                self.env.set_state(state)
+            except (KeyError, ValueError, TypeError) as err:
+                raise CheckpointError(f"checkpoint {path}: saved env state does not fit the env: {err}") from None
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog=PROG,
+        description="Train a policy with PPO (rsl_rl) on a registered task.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("--task", help="registered task (default: caster_omni when registered, else the first)")
+    p.add_argument("--num_envs", type=int, help="parallel envs (default: the env's: 512 on CPU, 4096 on Warp/CUDA)")
+    p.add_argument("--max_iterations", type=int, help="PPO iterations to run now (on --resume: more iterations)")
+    p.add_argument("--seed", type=int, help="seed of env and networks (default: the train config's)")
+    p.add_argument("--device", default="auto", help="torch device of the learner and env tensors: auto, cpu, cuda:N")
+    p.add_argument("--sim_backend", default="auto", choices=BACKEND_KINDS, help="auto: warp on CUDA, else cpu")
+    p.add_argument("--headless", action="store_true", help="accepted for legged_gym habits; training never renders")
+    p.add_argument("--resume", action="store_true", help="continue a run: same folder, iteration, optimizer, ...")
+    p.add_argument("--load_run", help="run to resume: folder name under logs/<experiment>, or a path (default newest)")
+    p.add_argument("--checkpoint", help="checkpoint to resume from: iteration, model_<it>.pt or path (default newest)")
+    p.add_argument("--experiment_name", help="folder under the log root (default: the task's train config)")
+    p.add_argument("--run_name", help="suffix of the run folder name")
+    p.add_argument("--log_root", help=f"root of the run folders (default: ${common.LOG_ROOT_ENV} or <repo>/logs)")
+    p.add_argument(
+        "--set",
+        dest="env_set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override an env config field by dotted name, value in YAML (repeatable), e.g. "
+        "--set commands.ranges.lin_vel_x=[-2,2]",
+    )
+    p.add_argument(
+        "--train-set",
+        "--train_set",
+        dest="train_set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a train config field, e.g. --train-set algorithm.learning_rate=5e-4 (repeatable)",
+    )
+    p.add_argument(
+        "--console",
+        choices=("block", "line"),
+        default="block",
+        help="block: rsl_rl's per-iteration report (with ETA) plus a progress line; line: only the progress line",
+    )
+    return p
+
+
+def _progress_hook(runner: CheckpointingRunner, console: str, task: str) -> None:
+    """Wrap the rsl_rl logger's per-iteration report with a one-line progress summary."""
+    logger = runner.logger
+    original = logger.log
+    steps_per_it = runner.cfg["num_steps_per_env"] * runner.env.num_envs * logger.gpu_world_size
+
+    def log(**kw):
+        if console == "line":
+            with contextlib.redirect_stdout(io.StringIO()):
+                original(**kw)
+        else:
+            original(**kw)
+        if logger.writer is None:
+            return
+        it, start_it, total_it = kw["it"], kw["start_it"], kw["total_it"]
+        it_time = kw["collect_time"] + kw["learn_time"]
+        done = it + 1 - start_it
+        eta = logger.tot_time / max(done, 1) * (total_it - it - 1)
+        reward = statistics.mean(logger.rewbuffer) if logger.rewbuffer else math.nan
+        length = statistics.mean(logger.lenbuffer) if logger.lenbuffer else math.nan
+        print(
+            f"[{task}] it {it + 1}/{total_it} | {steps_per_it / it_time:,.0f} steps/s | {it_time:.2f} s/it "
+            f"(collect {kw['collect_time']:.2f}) | mean reward {reward:.3f} | ep len {length:.0f} | "
+            f"ETA {datetime.timedelta(seconds=int(eta))}",
+            flush=True,
+        )
+
+    logger.log = log
+
+
+def _write_run_files(run_dir: Path, task: str, experiment: str, env_cfg, train_cfg, argv, resumed_from) -> None:
+    dump_yaml(env_cfg, run_dir / "env.yaml")
+    dump_yaml(train_cfg, run_dir / "train.yaml")
+    info = common.read_run_info(run_dir)
+    info.setdefault("task", task)
+    info.setdefault("experiment", experiment)
+    info.setdefault("created", datetime.datetime.now().isoformat(timespec="seconds"))
+    if resumed_from:
+        info.setdefault("resumed", []).append(
+            {"from": str(resumed_from), "at": datetime.datetime.now().isoformat(timespec="seconds")}
+        )
+    common.write_text_atomic(run_dir / common.RUN_FILE, yaml.safe_dump(info, sort_keys=False))
+    repo = Path(__file__).resolve().parents[2]
+    git, diff = common.git_state(repo)
+    # The first invocation's code state is git.yaml/git.diff; each resume adds its own.
+    tag = "" if not resumed_from else "_resume_" + datetime.datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
+    common.write_text_atomic(run_dir / f"git{tag}.yaml", yaml.safe_dump(git, sort_keys=False))
+    common.write_text_atomic(run_dir / f"git{tag}.diff", diff)
+    with open(run_dir / "command.txt", "a") as f:
+        f.write(f"# {datetime.datetime.now().isoformat(timespec='seconds')} cwd={os.getcwd()}\n")
+        f.write(common.command_line(argv) + "\n")
+
+
+def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Path | None) -> int:
+    # --- everything is checked before the simulation starts ---------------------------
+    task = args.task or common.default_task()
+    spec = common.check_task(task)
+    if args.num_envs is not None and args.num_envs < 1:
+        raise UsageError(f"--num_envs must be at least 1, got {args.num_envs}")
+    if args.max_iterations is not None and args.max_iterations < 1:
+        raise UsageError(f"--max_iterations must be at least 1, got {args.max_iterations}")
+    if (args.load_run or args.checkpoint) and not args.resume:
+        raise UsageError("--load_run/--checkpoint choose what to resume from: add --resume")
+    backend = resolve_backend(args.sim_backend)
+    device = common.resolve_device(args.device, backend)
+    rank = int(os.environ.get("RANK", "0"))
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world > 1 and device != f"cuda:{int(os.environ.get('LOCAL_RANK', '0'))}":
+        raise UsageError(f"distributed training (WORLD_SIZE={world}) needs --device auto or cuda:LOCAL_RANK")
+    root = common.log_root(args.log_root, default_log_root)
+
+    ckpt, ckpt_path, run_dir = None, None, None
+    experiment = args.experiment_name or spec.train_cfg.experiment_name
+    if args.resume:
+        run_dir = common.find_run(root, experiment, args.load_run)
+        ckpt_path = common.find_checkpoint(run_dir, args.checkpoint)
+        ckpt = common.load_checkpoint(ckpt_path, map_location=device)
+        env_cfg, train_cfg = common.run_configs(spec, run_dir)
+    else:
+        env_cfg, train_cfg = common.run_configs(spec, None)
+
+    env_cfg = common.with_overrides(env_cfg, args.env_set, "--set")
+    train_cfg = common.with_overrides(train_cfg, args.train_set, "--train-set")
+    env_fields = {"sim.backend": args.sim_backend, "sim.device": device}
+    if args.num_envs is not None:
+        env_fields["num_envs"] = args.num_envs
+    train_fields = {}
+    for flag in ("max_iterations", "seed", "experiment_name", "run_name"):
+        if getattr(args, flag) is not None:
+            train_fields[flag] = getattr(args, flag)
+    train_cfg = common.with_overrides(train_cfg, train_fields, "train flags")
+    env_fields["seed"] = train_cfg.seed + rank  # each process of a distributed run its own env draws
+    env_cfg = common.with_overrides(env_cfg, env_fields, "env flags")
+    experiment = train_cfg.experiment_name
+    if run_dir is None:
+        run_dir = common.new_run_dir(root, experiment, train_cfg.run_name)
+
+    # --- simulation -------------------------------------------------------------------------
+    torch.manual_seed(train_cfg.seed + rank)
+    t0 = time.time()
+    env = spec.env_class(env_cfg)
+    print(
+        f"[{PROG}] task {task}: {env.num_envs} envs on the {env.backend_kind} backend, device {device}, "
+        f"obs {env.observation_dims()}, control dt {env.dt:.3f} s (env built in {time.time() - t0:.1f} s)"
+    )
+    rsl_cfg = train_cfg.to_rsl_rl()
+    rsl_cfg["run_name"] = train_cfg.run_name
+    log_dir = str(run_dir) if rank == 0 else None
+    try:
+        runner = CheckpointingRunner(env, rsl_cfg, log_dir=log_dir, device=device, task=task)
+        runner.logger.git_status_repos = []  # the code state is ours to record (git.yaml, git.diff)
+        if ckpt is not None:
+            runner.load_checkpoint(ckpt, ckpt_path)
+            print(f"[{PROG}] resumed {ckpt_path} at iteration {runner.current_learning_iteration}")
+        if rank == 0:
+            _write_run_files(run_dir, task, experiment, env_cfg, train_cfg, argv, ckpt_path)
+            print(f"[{PROG}] run folder {run_dir}")
+        _progress_hook(runner, args.console, task)
+        try:
+            runner.learn(num_learning_iterations=train_cfg.max_iterations, init_at_random_ep_len=True)
+        except KeyboardInterrupt:
+            latest = common.checkpoints(run_dir)
+            where = latest[-1][1] if latest else "(no checkpoint yet)"
+            print(f"\n[{PROG}] interrupted; newest checkpoint {where}", file=sys.stderr)
+            print(f"[{PROG}] continue with: python train.py --task {task} --resume --load_run {run_dir}")
+            return 130
+    finally:
+        env.close()
+    if rank == 0:
+        last = common.checkpoints(run_dir)[-1][1]
+        print(f"[{PROG}] done: {last}")
+        print(f"[{PROG}] watch: tensorboard --logdir {root}    play: python play.py --task {task} --load_run {run_dir}")
+    return common.EXIT_OK
+
+
+def main(argv: list[str] | None = None, default_log_root: Path | str | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return common.run_cli(lambda: train(args, argv, Path(default_log_root) if default_log_root else None), PROG)
