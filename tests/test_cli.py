@@ -1,0 +1,374 @@
+"""train.py / play.py / export.py end to end on the CPU backend: a tiny training run,
+resume, export with parity, headless play; and the errors users get for bad input."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+import torch
+import yaml
+
+from legged_casters import registry
+from legged_casters.config import load_yaml
+from legged_casters.robot import go2
+from legged_casters.tools import common, export, play, render, train
+
+REPO = Path(__file__).resolve().parents[1]
+TASK = "go2_flat"
+NUM_ENVS, STEPS = 4, 8
+SMALL = [
+    "--train-set",
+    f"num_steps_per_env={STEPS}",
+    "--train-set",
+    "save_interval=1",
+    "--train-set",
+    "policy.actor_hidden_dims=[64,64]",
+    "--train-set",
+    "policy.critic_hidden_dims=[64,64]",
+    "--console",
+    "line",
+]
+UPDATES_PER_IT = 5 * 4  # PPO epochs x mini-batches of the default train config
+
+
+def _train(root: Path, *extra: str) -> tuple[int, str]:
+    argv = ["--task", TASK, "--num_envs", str(NUM_ENVS), "--sim_backend", "cpu", "--log_root", str(root), *extra]
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        rc = train.main(argv)
+    return rc, out.getvalue()
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """A 2-iteration run, then resumed for 1 more iteration. Returns (root, run_dir, outputs)."""
+    root = tmp_path_factory.mktemp("logs")
+    rc, out1 = _train(root, "--max_iterations", "2", "--run_name", "tiny", *SMALL)
+    assert rc == 0, out1
+    (run_dir,) = (root / TASK).iterdir()
+    # Snapshot of the first invocation's last checkpoint, before the resume adds model_2.
+    first = torch.load(run_dir / "model_1.pt", weights_only=True)
+    # A curriculum state the resumed env must pick up from the checkpoint.
+    first["infos"]["env_state"]["command_ranges"]["lin_vel_x"] = [-1.5, 1.5]
+    torch.save(first, run_dir / "model_1.pt")
+    rc, out2 = _train(root, "--resume", "--max_iterations", "1")
+    assert rc == 0, out2
+    return root, run_dir, first, out1, out2
+
+
+@pytest.fixture(autouse=False)
+def no_simulation(monkeypatch):
+    """Fail the test if any env (and so any simulation) is constructed."""
+
+    def boom(self, cfg):
+        raise AssertionError("a simulation was started")
+
+    monkeypatch.setattr(registry.get_task(TASK).env_class, "__init__", boom)
+
+
+# --- training, resume ---------------------------------------------------------------------------
+def test_run_folder_holds_checkpoints_configs_git_state_and_events(run):
+    root, run_dir, _, out1, _ = run
+    assert run_dir.parent == root / TASK and run_dir.name.endswith("_tiny")
+    assert common.RUN_DIR_RE.match(run_dir.name)
+    names = {p.name for p in run_dir.iterdir()}
+    assert {"model_0.pt", "model_1.pt", "model_2.pt", "env.yaml", "train.yaml", "run.yaml"} <= names
+    assert {"git.yaml", "git.diff", "command.txt"} <= names
+    assert any(n.startswith("events.out.tfevents") for n in names)
+    assert not [n for n in names if n.endswith(".tmp")]
+    env_cfg = load_yaml(type(registry.get_task(TASK).env_cfg), run_dir / "env.yaml")
+    assert env_cfg.num_envs == NUM_ENVS and env_cfg.sim.backend == "cpu"
+    train_cfg = load_yaml(type(registry.get_task(TASK).train_cfg), run_dir / "train.yaml")
+    assert train_cfg.num_steps_per_env == STEPS and train_cfg.policy.actor_hidden_dims == (64, 64)
+    git = yaml.safe_load((run_dir / "git.yaml").read_text())
+    assert len(git["commit"]) == 40 and isinstance(git["dirty"], bool)
+    commands = (run_dir / "command.txt").read_text()
+    assert commands.count("train.py") == 2 and "--resume" in commands  # first invocation and the resume
+    assert yaml.safe_load((run_dir / "run.yaml").read_text())["task"] == TASK
+    # One progress line per iteration, with throughput and ETA.
+    lines = [line for line in out1.splitlines() if line.startswith(f"[{TASK}] it ")]
+    assert len(lines) == 2 and "steps/s" in lines[0] and "ETA" in lines[0] and "mean reward" in lines[0]
+
+
+def test_checkpoints_load_weights_only_and_carry_env_state(run):
+    _, run_dir, _, _, _ = run
+    ckpt = torch.load(run_dir / "model_0.pt", weights_only=True)
+    assert ckpt["iter"] == 0
+    assert ckpt["infos"]["task"] == TASK
+    assert ckpt["infos"]["env_state"]["command_ranges"]["lin_vel_x"] == [-1.0, 1.0]
+    assert {"actor_state_dict", "critic_state_dict", "optimizer_state_dict"} <= set(ckpt)
+
+
+def test_resume_continues_iterations_optimizer_normaliser_and_curriculum(run):
+    _, run_dir, first, _, out2 = run
+    resumed = torch.load(run_dir / "model_2.pt", weights_only=True)
+    assert resumed["iter"] == 2  # iterations 0, 1, then 2: numbering continues, nothing overwritten
+    assert f"resumed {run_dir / 'model_1.pt'} at iteration 2" in out2
+    # Adam's step count continues from the checkpoint's (a fresh optimizer would restart at one iteration's).
+    steps_before = max(s["step"].item() for s in first["optimizer_state_dict"]["state"].values())
+    steps_after = max(s["step"].item() for s in resumed["optimizer_state_dict"]["state"].values())
+    assert steps_before == 2 * UPDATES_PER_IT and steps_after == 3 * UPDATES_PER_IT
+    # The observation normaliser keeps counting samples.
+    count = "obs_normalizer.count"
+    assert resumed["actor_state_dict"][count] == first["actor_state_dict"][count] + NUM_ENVS * STEPS
+    # The curriculum state in the checkpoint was restored into the env and saved again.
+    assert resumed["infos"]["env_state"]["command_ranges"]["lin_vel_x"] == [-1.5, 1.5]
+    assert len(list(run_dir.glob("git_resume_*.yaml"))) == 1
+
+
+def test_atomic_save_never_leaves_a_half_written_newest_file(tmp_path, monkeypatch):
+    path = tmp_path / "model_5.pt"
+    common.save_checkpoint_atomic({"w": torch.ones(3)}, path)
+    real_save = torch.save
+
+    def dying_save(obj, f, *a, **kw):
+        f.write(b"PK\x03\x04 half a checkpoint")
+        raise KeyboardInterrupt  # killed while writing
+
+    monkeypatch.setattr(torch, "save", dying_save)
+    with pytest.raises(KeyboardInterrupt):
+        common.save_checkpoint_atomic({"w": torch.zeros(3)}, path)
+    monkeypatch.setattr(torch, "save", real_save)
+    assert torch.equal(torch.load(path, weights_only=True)["w"], torch.ones(3))
+    assert [p.name for p in tmp_path.iterdir()] == ["model_5.pt"]
+    # A temporary file is never taken for a checkpoint.
+    (tmp_path / ".model_9.pt.abc.tmp").write_bytes(b"junk")
+    assert common.find_checkpoint(tmp_path, None) == path
+
+
+def test_newest_checkpoint_is_by_iteration_number(tmp_path):
+    for it in (2, 10, 9):
+        (tmp_path / f"model_{it}.pt").write_bytes(b"x")
+    assert common.find_checkpoint(tmp_path, None).name == "model_10.pt"
+    assert common.find_checkpoint(tmp_path, "9").name == "model_9.pt"
+    assert common.find_checkpoint(tmp_path, "model_2.pt").name == "model_2.pt"
+
+
+# --- export ------------------------------------------------------------------------------------------
+SCHEMA_KEYS = [
+    "format_version",
+    "task",
+    "robot",
+    "joint_names",
+    "default_joint_pos",
+    "action_scale",
+    "clip_actions",
+    "kp",
+    "kd",
+    "torque_limits",
+    "joint_pos_limits",
+    "control_dt",
+    "physics_dt",
+    "observation",
+    "propulsion_modes",
+    "files",
+    "onnx",
+]
+
+
+@pytest.fixture(scope="module")
+def exported(run, tmp_path_factory):
+    root, run_dir, _, _, _ = run
+    out = tmp_path_factory.mktemp("exported")
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        rc = export.main(["--task", TASK, "--log_root", str(root), "--out", str(out)])
+    assert rc == 0, buf.getvalue()
+    return out, buf.getvalue()
+
+
+def test_export_writes_single_file_onnx_torchscript_and_the_deployment_yaml(exported):
+    out, log = exported
+    assert sorted(p.name for p in out.iterdir()) == ["policy.onnx", "policy.pt", "policy.yaml"]
+    meta = yaml.safe_load((out / "policy.yaml").read_text())
+    assert list(meta) == SCHEMA_KEYS
+    assert meta["format_version"] == 1 and meta["task"] == TASK and meta["robot"] == "point"
+    assert meta["joint_names"] == list(go2.ACTUATED_JOINTS)
+    assert meta["default_joint_pos"] == pytest.approx(go2.default_joint_positions())
+    assert meta["kp"] == go2.kp() and meta["kd"] == go2.kd() and meta["torque_limits"] == go2.torque_limits()
+    assert meta["joint_pos_limits"] == [list(r) for r in go2.joint_ranges()]
+    assert meta["control_dt"] == pytest.approx(0.02) and meta["physics_dt"] == pytest.approx(0.002)
+    assert meta["action_scale"] == 0.25 and meta["clip_actions"] == 100.0
+    terms = meta["observation"]["terms"]
+    assert [t["name"] for t in terms] == list(registry.get_task(TASK).env_class.OBSERVATIONS["policy"])
+    assert sum(t["dim"] for t in terms) == meta["observation"]["dim"] == 48
+    assert {t["name"]: t["scale"] for t in terms}["ang_vel"] == 0.25
+    assert meta["propulsion_modes"] == {}  # go2_flat has no modes
+    assert meta["files"] == {"onnx": "policy.onnx", "torchscript": "policy.pt"}
+    assert meta["onnx"] == {"input": "obs", "output": "actions"}
+    model = onnx.load(str(out / "policy.onnx"))
+    props = {p.key: p.value for p in model.metadata_props}
+    assert yaml.safe_load(props["policy.yaml"]) == meta
+    (inp,), (outp,) = model.graph.input, model.graph.output
+    assert inp.name == "obs" and outp.name == "actions"
+    assert inp.type.tensor_type.shape.dim[0].dim_param  # dynamic batch axis
+    assert inp.type.tensor_type.shape.dim[1].dim_value == 48
+    assert "parity" in log
+
+
+def test_exported_files_match_the_training_actor_on_real_observations(run, exported):
+    """Training actor (rsl_rl MLPModel, deterministic, normaliser on), TorchScript and
+    onnxruntime agree within 1e-5 on observations of a rollout, batch > 1."""
+    root, run_dir, _, _, _ = run
+    out, _ = exported
+    sel = common.select_checkpoint(_sel_args(root, load_run=str(run_dir)), None)
+    env = common.make_eval_env(sel, num_envs=6, overrides=[])
+    actor = export.load_actor(env, sel.train_cfg, sel.ckpt, sel.ckpt_path)
+    assert actor.obs_normalizer.count > 0  # a trained normaliser, not the identity
+    torch.manual_seed(3)
+    for _ in range(15):
+        obs, *_ = env.step(torch.randn(6, 12) * 0.5)
+    paths = {"torchscript": out / "policy.pt", "onnx": out / "policy.onnx"}
+    err = export.check_parity(actor, paths, obs["policy"])
+    assert err["torchscript"] < 1e-5 and err["onnx"] < 1e-5, err
+    err1 = export.check_parity(actor, paths, obs["policy"][:1])  # batch 1 through the dynamic axis
+    assert max(err1.values()) < 1e-5
+    env.close()
+
+
+def _sel_args(root, **kw):
+    import argparse
+
+    base = {"task": TASK, "experiment_name": None, "load_run": None, "checkpoint": None, "log_root": str(root)}
+    return argparse.Namespace(**{**base, **kw})
+
+
+# --- play ----------------------------------------------------------------------------------------------
+def test_headless_play_writes_a_video_and_plots(run, tmp_path):
+    root, _, _, _, _ = run
+    backend, errors = render.probe_gl_backend()
+    if backend is None:
+        pytest.skip(f"no offscreen OpenGL here: {errors}")
+    out = tmp_path / "play"
+    argv = ["--task", TASK, "--log_root", str(root), "--headless", "--duration", "1.0", "--fps", "10"]
+    argv += ["--width", "160", "--height", "120", "--fast_render", "--out", str(out)]
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert play.main(argv) == 0, buf.getvalue()
+    names = sorted(p.name for p in out.iterdir())
+    assert names == [
+        "model_2_steps.mp4",
+        "model_2_steps_data.npz",
+        "model_2_steps_joints.png",
+        "model_2_steps_velocity.png",
+    ]
+    import imageio.v2 as imageio
+
+    frames = [f for f in imageio.get_reader(str(out / "model_2_steps.mp4")).iter_data()]
+    assert len(frames) == 10 and frames[0].shape == (120, 160, 3)
+    assert np.std(frames[5]) > 5  # a picture, not a blank frame
+    data = np.load(out / "model_2_steps_data.npz")
+    assert data["t"].shape == (50,) and data["measured"].shape == (50, 3) and data["joint_pos"].shape == (50, 12)
+    # steps profile: stand, then -0.6 m/s, then +0.6 m/s
+    assert data["command"][0, 0] == 0 and data["command"][25, 0] == pytest.approx(-0.6)
+    assert data["command"][-1, 0] == pytest.approx(0.6)
+
+
+def test_play_runs_an_exported_onnx_policy(exported, tmp_path):
+    out, _ = exported
+    argv = ["--policy", str(out / "policy.onnx"), "--no_video", "--headless", "--profile", "slalom"]
+    argv += ["--duration", "0.5", "--num_envs", "1", "--out", str(tmp_path)]
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert play.main(argv) == 0, buf.getvalue()
+    assert (tmp_path / "policy_slalom_velocity.png").is_file()
+    data = np.load(tmp_path / "policy_slalom_data.npz")
+    assert data["command"][0, 1] == pytest.approx(0.4)  # slalom starts to the left
+
+
+# --- bad input fails before any simulation ----------------------------------------------------------------
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--task", "nope"], "unknown task 'nope'; known tasks: "),
+        (["--set", "commands.nope=1"], "unknown config field 'commands.nope'"),
+        (["--set", "control.action_scale=fast"], "expected a number"),
+        (["--set", "num_envs=0"], "below the minimum"),
+        (["--set", "noequals"], "must look like name.path=value"),
+        (["--train-set", "algorithm.gamma=2"], "above the maximum"),
+        (["--train-set", "policy.activation=swish"], "is not allowed"),
+        (["--num_envs", "0"], "--num_envs must be at least 1"),
+        (["--load_run", "x"], "add --resume"),
+        (["--device", "tpu"], "--device"),
+    ],
+)
+def test_bad_train_flags_exit_2_with_what_is_allowed(no_simulation, tmp_path, capsys, argv, message):
+    assert train.main([*argv, "--log_root", str(tmp_path)]) == common.EXIT_USAGE
+    assert message in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())  # no run folder either
+
+
+def test_bad_backend_is_refused_by_the_parser(no_simulation, capsys):
+    with pytest.raises(SystemExit) as exc:
+        train.main(["--sim_backend", "gpu"])
+    assert exc.value.code == common.EXIT_USAGE
+    err = capsys.readouterr().err
+    assert "invalid choice: 'gpu'" in err and "'auto', 'cpu', 'warp'" in err
+
+
+def test_cuda_device_without_cuda_is_refused(no_simulation, tmp_path, capsys):
+    if torch.cuda.is_available():
+        pytest.skip("this machine has CUDA")
+    assert train.main(["--device", "cuda", "--log_root", str(tmp_path)]) == common.EXIT_USAGE
+    assert "CUDA is not available" in capsys.readouterr().err
+
+
+def test_resume_without_runs_or_with_a_missing_checkpoint(run, no_simulation, tmp_path, capsys):
+    assert train.main(["--task", TASK, "--resume", "--log_root", str(tmp_path)]) == common.EXIT_USAGE
+    assert "no run with a checkpoint under" in capsys.readouterr().err
+    root, run_dir, _, _, _ = run
+    argv = ["--task", TASK, "--resume", "--log_root", str(root)]
+    assert train.main([*argv, "--checkpoint", "99"]) == common.EXIT_USAGE
+    assert "checkpoints there: model_0.pt, model_1.pt, model_2.pt" in capsys.readouterr().err
+    assert train.main([*argv, "--load_run", "nope"]) == common.EXIT_USAGE
+    assert f"runs there: {run_dir.name}" in capsys.readouterr().err
+
+
+def test_corrupt_or_truncated_checkpoints_give_a_clear_error(run, no_simulation, tmp_path, capsys):
+    _, run_dir, _, _, _ = run
+    copy = tmp_path / TASK / run_dir.name
+    shutil.copytree(run_dir, copy)
+    newest = copy / "model_2.pt"
+    good = newest.read_bytes()
+    for bad in (good[: len(good) // 2], b"not a checkpoint at all"):
+        newest.write_bytes(bad)
+        assert train.main(["--task", TASK, "--resume", "--log_root", str(tmp_path)]) == common.EXIT_FAILURE
+        err = capsys.readouterr().err
+        assert f"checkpoint {newest} cannot be read" in err and "corrupt" in err
+        assert export.main(["--task", TASK, "--log_root", str(tmp_path)]) == common.EXIT_FAILURE
+        assert "cannot be read" in capsys.readouterr().err
+
+
+def test_play_flags_are_checked_before_the_simulation(no_simulation, tmp_path, capsys):
+    argv = ["--task", TASK, "--log_root", str(tmp_path), "--headless"]
+    assert play.main([*argv, "--policy", "zero", "--profile", "modes"]) == common.EXIT_USAGE
+    assert "needs a task with propulsion modes" in capsys.readouterr().err
+    assert play.main(argv) == common.EXIT_USAGE  # nothing trained under this root
+    assert "no run with a checkpoint" in capsys.readouterr().err
+    assert play.main([*argv, "--policy", str(tmp_path / "missing.onnx")]) == common.EXIT_USAGE
+    assert "no such file" in capsys.readouterr().err
+    assert play.main([*argv, "--policy", "zero", "--set", "rewards.nope.x=1"]) == common.EXIT_USAGE
+    assert "unknown config field" in capsys.readouterr().err
+
+
+def test_default_task_prefers_caster_omni():
+    tasks = registry.list_tasks()
+    assert common.default_task() == ("caster_omni" if "caster_omni" in tasks else tasks[0])
+
+
+def test_entry_point_exit_code_and_message():
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    out = subprocess.run(
+        [sys.executable, str(REPO / "train.py"), "--task", "nope"], capture_output=True, text=True, env=env, timeout=120
+    )
+    assert out.returncode == 2
+    assert "train.py: error: unknown task 'nope'; known tasks: " in out.stderr and TASK in out.stderr
