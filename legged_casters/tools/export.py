@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import copy
 import json
+import logging
 import sys
 import warnings
 from pathlib import Path
@@ -209,6 +210,7 @@ def export_policy(actor: nn.Module, meta: dict, out_dir: Path) -> dict[str, Path
     paths["yaml"] = out_dir / "policy.yaml"
     text = metadata_yaml(meta)
 
+    logging.getLogger("torch.onnx").setLevel(logging.ERROR)  # e.g. "torchvision is not installed"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         scripted = torch.jit.script(module)

@@ -332,8 +332,10 @@ def _run(args, src: PolicySource, env, policy, profile: Profile, headless: bool,
     has_caster = hasattr(env, "caster_state")
 
     cmd, mode = profile.at(0.0)
+    _apply(env, cmd, mode)  # external commands first: the reset then keeps them
+    env.reset()
     _apply(env, cmd, mode)
-    obs = env.reset()
+    obs = env.compute_observations()
 
     renderer = writer = viewer = None
     render_model = build.MODEL_FILES[env.cfg.robot]
@@ -360,13 +362,14 @@ def _run(args, src: PolicySource, env, policy, profile: Profile, headless: bool,
         viewer.cam.distance = 2.0
 
     rec = Recorder()
-    resets = 0
+    resets, reset_any = 0, False
     wall0 = time.time()
     try:
         for k in range(steps):
             t = k * dt
             new_cmd, new_mode = profile.at(t)
-            if new_cmd != cmd or new_mode != mode:
+            # Re-apply after a reset too, in case the task draws a new mode for a reset robot.
+            if new_cmd != cmd or new_mode != mode or (mode is not None and reset_any):
                 cmd, mode = new_cmd, new_mode
                 _apply(env, cmd, mode)
                 obs = env.compute_observations()  # the policy sees the new command now
@@ -374,6 +377,7 @@ def _run(args, src: PolicySource, env, policy, profile: Profile, headless: bool,
                 actions = policy(obs)
             obs, _, dones, _ = env.step(actions)
             resets += int(dones[0])
+            reset_any = bool(dones.any())
             row = {
                 "t": t + dt,
                 "command": env.commands[0].cpu().numpy(),
