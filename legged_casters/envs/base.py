@@ -66,6 +66,7 @@ class LeggedEnv(VecEnv):
         self._init_indices()
         self._init_buffers()
         self._init_rewards()
+        self._init_task_buffers()
         self.reset_idx(torch.arange(self.num_envs, device=self.device))
         self._init_observation_layout()
 
@@ -204,6 +205,9 @@ class LeggedEnv(VecEnv):
         self.last_joint_vel[:] = self.joint_vel
         self.extras["time_outs"] = self.time_out_buf.clone()
         return self.obs_buf, self.rew_buf.clone(), self.reset_buf.clone(), self.extras
+
+    def _init_task_buffers(self) -> None:
+        """Task hook: allocate the task's own per-env state (before the first reset)."""
 
     def _post_physics_step(self) -> None:
         """Task hook: update task state after physics, before terminations and rewards."""
