@@ -182,6 +182,19 @@ class LeggedEnv(VecEnv):
         return self.obs_buf
 
     def step(self, actions: torch.Tensor):
+        if self.backend_kind != "cpu" or self.device.type != "cpu":
+            return self._step(actions)
+        # The rollout thread pool owns the cores. torch's own worker threads, woken by
+        # the env's small tensor ops, spin afterwards and slow the physics (measured on
+        # 2 cores at 1024 envs: 0.50 s -> 0.19 s per step with one torch thread).
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            return self._step(actions)
+        finally:
+            torch.set_num_threads(threads)
+
+    def _step(self, actions: torch.Tensor):
         clip = self.cfg.control.clip_actions
         actions = actions.to(self.device)
         bad_actions = ~torch.isfinite(actions).all(dim=1)
