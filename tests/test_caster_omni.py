@@ -175,3 +175,15 @@ def test_two_iterations_of_rsl_rl_ppo_with_the_asymmetric_critic(tmp_path):
     assert runner.alg.actor.obs_dim == 49 and runner.alg.critic.obs_dim == 49 + 23
     runner.learn(num_learning_iterations=2)
     assert runner.current_learning_iteration == 1
+
+
+def test_long_random_rollout_stays_finite():
+    e = registry.make_env("caster_omni", CPU + ["domain_rand.push_interval_s=0.5"], num_envs=16)
+    torch.manual_seed(2)
+    for _ in range(300):
+        obs, rew, dones, extras = e.step(torch.randn(e.num_envs, e.num_actions))
+        assert torch.isfinite(obs["policy"]).all() and torch.isfinite(obs["critic"]).all()
+        assert torch.isfinite(rew).all()
+        for key, value in extras["log"].items():
+            assert torch.isfinite(torch.as_tensor(value)).all(), key
+    assert e.nonfinite_resets == 0

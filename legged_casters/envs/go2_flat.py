@@ -38,6 +38,9 @@ def _go2_flat_rewards() -> RewardsCfg:
             "termination": 0.0,
         },
         base_height_target=0.30,
+        # As in legged_gym: while the penalties outweigh the rewards, a negative total
+        # would teach the policy to end episodes early (falling is not penalised).
+        only_positive_rewards=True,
     )
 
 
