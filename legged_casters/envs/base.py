@@ -101,6 +101,7 @@ class LeggedEnv(VecEnv):
         self.rew_buf = torch.zeros(n, device=dev)
         self.last_joint_vel = torch.zeros(n, self.num_actions, device=dev)
         self.common_step_counter = 0
+        self._curriculum_score, self._curriculum_count = 0.0, 0
         self.external_commands = False
         """True: commands come from `set_commands` (play, deployment tests), never resampled."""
         self.extras: dict = {"log": {}}
@@ -213,6 +214,7 @@ class LeggedEnv(VecEnv):
         self.extras = {"log": {}}
         if len(env_ids):
             self.reset_idx(env_ids)
+        self._advance_curriculum()
         self.obs_buf = self.compute_observations()
         self.last_actions[:] = self.actions
         self.last_joint_vel[:] = self.joint_vel
@@ -348,14 +350,25 @@ class LeggedEnv(VecEnv):
         log["Diagnostics/nonfinite_resets"] = float(self.nonfinite_resets)
 
     def update_curriculum(self, env_ids: torch.Tensor) -> None:
-        """Widen the forward/backward command range while linear tracking is good."""
+        """Collect the linear-tracking score of the episodes ending now; once per
+        episode length, widen the forward/backward command range if the episodes that
+        ended in that period earned on average more than `curriculum_threshold` of
+        the term's maximum. (legged_gym looks only at the envs that happen to reset on
+        that exact step.)"""
         cmd = self.cfg.commands
         if not cmd.curriculum or "tracking_lin_vel" not in self.reward_terms:
             return
-        if self.common_step_counter % self.max_episode_length:
-            return  # once per episode length, as legged_gym does
+        ran = env_ids[self.episode_length_buf[env_ids] > 0]  # not the initial reset
+        self._curriculum_score += float(self.episode_sums["tracking_lin_vel"][ran].sum()) / self.max_episode_length
+        self._curriculum_count += len(ran)
+
+    def _advance_curriculum(self) -> None:
+        cmd = self.cfg.commands
+        if not cmd.curriculum or self.common_step_counter % self.max_episode_length or not self._curriculum_count:
+            return
         _, scale = self.reward_terms["tracking_lin_vel"]
-        mean = self.episode_sums["tracking_lin_vel"][env_ids].mean() / self.max_episode_length
+        mean = self._curriculum_score / self._curriculum_count
+        self._curriculum_score, self._curriculum_count = 0.0, 0
         if mean > cmd.curriculum_threshold * scale:
             lo, hi = self.command_ranges["lin_vel_x"]
             self.command_ranges["lin_vel_x"] = [
