@@ -141,11 +141,18 @@ def test_command_curriculum_widens_the_range_when_tracking_is_good():
     e = registry.make_env(
         "go2_flat", CPU + ["commands.curriculum=true", "commands.max_lin_vel_x=[-2.0, 2.0]"], num_envs=4
     )
-    ids = torch.arange(4)
     _, scale = e.reward_terms["tracking_lin_vel"]
-    e.episode_sums["tracking_lin_vel"][:] = scale * e.max_episode_length  # perfect tracking
-    e.common_step_counter = e.max_episode_length
-    e.update_curriculum(ids)
+    e.episode_length_buf[:] = 500
+    e.episode_sums["tracking_lin_vel"][:2] = 0.9 * scale * e.max_episode_length  # good tracking
+    e.update_curriculum(torch.tensor([0, 1]))
+    e.common_step_counter = e.max_episode_length - 1
+    e.step(torch.zeros(4, 12))  # the step that completes the period
+    assert e.command_ranges["lin_vel_x"] == [-1.25, 1.25]
+    e.episode_length_buf[:] = 500
+    e.episode_sums["tracking_lin_vel"][:2] = 0.5 * scale * e.max_episode_length  # poor tracking
+    e.update_curriculum(torch.tensor([0, 1]))
+    e.common_step_counter = 2 * e.max_episode_length - 1
+    e.step(torch.zeros(4, 12))
     assert e.command_ranges["lin_vel_x"] == [-1.25, 1.25]
     state = copy.deepcopy(e.get_state())
     e2 = registry.make_env("go2_flat", CPU, num_envs=2)

@@ -66,7 +66,7 @@ class NoiseCfg:
 @dataclass
 class ObservationsCfg:
     scales: dict[str, float] = field(
-        default_factory=lambda: {"lin_vel": 2.0, "ang_vel": 0.25, "joint_vel": 0.05, "caster_vel": 0.05}
+        default_factory=lambda: {"lin_vel": 2.0, "ang_vel": 0.25, "joint_vel": 0.05, "swivel_vel": 0.05}
     )
     """Multiplier per observation term (terms not listed: 1)."""
     clip: float = field(default=100.0, metadata={"min": 0.0})

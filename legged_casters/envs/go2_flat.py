@@ -38,6 +38,9 @@ def _go2_flat_rewards() -> RewardsCfg:
             "termination": 0.0,
         },
         base_height_target=0.30,
+        # As in legged_gym: while the penalties outweigh the rewards, a negative total
+        # would teach the policy to end episodes early (falling is not penalised).
+        only_positive_rewards=True,
     )
 
 
@@ -64,15 +67,13 @@ class Go2FlatEnv(LeggedEnv):
 
     cfg: Go2FlatCfg
 
-    def __init__(self, cfg: Go2FlatCfg):
-        self.feet_air_time = None
-        super().__init__(cfg)
+    def _init_task_buffers(self) -> None:
+        self.feet_air_time = torch.zeros(self.num_envs, 4, device=self.device)
+        self.last_contacts = torch.zeros(self.num_envs, 4, dtype=torch.bool, device=self.device)
+        self.first_contact = torch.zeros_like(self.last_contacts)
+        self.air_time_at_touchdown = torch.zeros_like(self.feet_air_time)
 
     def _reset_task_state(self, env_ids: torch.Tensor) -> None:
-        if self.feet_air_time is None:
-            self.feet_air_time = torch.zeros(self.num_envs, 4, device=self.device)
-            self.last_contacts = torch.zeros(self.num_envs, 4, dtype=torch.bool, device=self.device)
-            self.first_contact = torch.zeros_like(self.last_contacts)
         self.feet_air_time[env_ids] = 0.0
         self.last_contacts[env_ids] = False
 
@@ -82,7 +83,7 @@ class Go2FlatEnv(LeggedEnv):
         self.last_contacts = contact
         self.feet_air_time += self.dt
         self.first_contact = (self.feet_air_time > self.dt) & touching
-        self._air_time_at_touchdown = self.feet_air_time * self.first_contact
+        self.air_time_at_touchdown = self.feet_air_time * self.first_contact
         self.feet_air_time *= ~touching
 
     def _obs_feet_contact(self) -> torch.Tensor:
@@ -90,10 +91,8 @@ class Go2FlatEnv(LeggedEnv):
 
     def _reward_feet_air_time(self) -> torch.Tensor:
         """Reward steps longer than the target air time, paid at touchdown, while moving."""
-        if not hasattr(self, "_air_time_at_touchdown"):
-            return torch.zeros(self.num_envs, device=self.device)
         target = self.cfg.feet_air_time_target
-        reward = torch.sum((self._air_time_at_touchdown - target) * self.first_contact, dim=1)
+        reward = torch.sum((self.air_time_at_touchdown - target) * self.first_contact, dim=1)
         return reward * (torch.linalg.norm(self.commands[:, :2], dim=1) > 0.1)
 
 

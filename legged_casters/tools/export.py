@@ -97,6 +97,14 @@ def _actuator_of_joint(model: mujoco.MjModel) -> dict[str, int]:
     return out
 
 
+def propulsion_modes(env) -> dict[str, list[int]]:
+    """{name: mask} of a task with propulsion modes (its config's masks), else {}."""
+    if not hasattr(env, "set_mode"):
+        return {}
+    masks = getattr(getattr(env.cfg, "modes", None), "masks", None) or PROPULSION_MODES
+    return {str(name): [int(v) for v in mask] for name, mask in masks.items()}
+
+
 def policy_metadata(env, task: str) -> dict:
     """The deployment description (format_version 1), read from the env and its model."""
     model, cfg = env.model, env.cfg
@@ -134,7 +142,7 @@ def policy_metadata(env, task: str) -> dict:
             "clip": float(cfg.observations.clip),
             "terms": terms,
         },
-        "propulsion_modes": copy.deepcopy(PROPULSION_MODES) if hasattr(env, "set_mode") else {},
+        "propulsion_modes": propulsion_modes(env),
         "files": {"onnx": "policy.onnx", "torchscript": "policy.pt"},
         "onnx": {"input": ONNX_INPUT, "output": ONNX_OUTPUT},
     }

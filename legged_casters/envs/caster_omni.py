@@ -1,0 +1,269 @@
+"""caster_omni: the WaveForward task (paper sections III-IV).
+
+The Go2 on passive casters tracks an omnidirectional velocity command by tilting
+each caster's swivel axis towards the command (posture strategy) and wiggling the
+casters whose propulsion mode allows it. The actor sees only what the real robot
+measures (command, mode, IMU, joint encoders, last action); the critic also gets
+the privileged caster state (swivel axes, swivel angles and rates, trunk velocity).
+
+Choices the paper leaves open, made here:
+* Control: physics dt 2 ms (the stiff caster contact needs it), decimation 10, so
+  the policy runs at 50 Hz; action = offset from the nominal pose, scale 0.25 rad.
+* Table I writes some terms with the minus inside and a positive weight, others
+  the other way round. Here every term returns a magnitude as defined and the
+  weight carries the sign; the weights below are Table I's with that sign moved.
+* Body-height target: the standing keyframe's trunk height (where the PD legs hold
+  the robot), and a 0.1 m length scale (Table I's exp(-dh^2) with dh in metres is
+  flat to within 0.3 % for any reasonable error, so it would teach nothing).
+* Collisions: Table I's set P includes the wheel, but the wheels touch the floor
+  all the time; P here is every robot body except the wheels and the trunk (the
+  trunk terminates the episode).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import torch
+
+from legged_casters.config import ConfigError
+from legged_casters.envs.base import LeggedEnv
+from legged_casters.envs.config import (
+    CommandRanges,
+    CommandsCfg,
+    DomainRandCfg,
+    LeggedEnvCfg,
+    RewardsCfg,
+    TerminationCfg,
+)
+from legged_casters.robot import go2
+from legged_casters.train_config import TrainCfg
+from legged_casters.utils.math import wrap_to_pi, yaw_from_quat
+
+GATE_SPEED = 0.2
+"""The posture, joint-angle and oscillation-mask terms act only above this commanded speed (m/s)."""
+
+MODE_MASKS: dict[str, list[int]] = {
+    "four_wheel": [0, 0, 0, 0],
+    "front_wheel": [0, 0, 1, 1],
+    "rear_wheel": [1, 1, 0, 0],
+}
+"""Propulsion modes: mask M = [FL, FR, RL, RR], 1 = that caster should not oscillate."""
+
+
+@dataclass
+class ModesCfg:
+    masks: dict[str, list[int]] = field(default_factory=lambda: {k: list(v) for k, v in MODE_MASKS.items()})
+    """Name -> mask. Any non-empty subset of oscillating casters (0s) is allowed."""
+    sample: list[str] = field(default_factory=lambda: list(MODE_MASKS))
+    """Modes drawn (uniformly) at every episode start."""
+    switch_probability: float = field(default=0.25, metadata={"min": 0.0, "max": 1.0})
+    """Chance that a mid-episode command resample also switches the mode."""
+
+
+def _caster_rewards() -> RewardsCfg:
+    return RewardsCfg(
+        scales={
+            "tracking_lin_vel": 2.0,
+            "tracking_ang_vel": 0.5,
+            "caster_posture": 1.5,  # term <= 0, so the weight stays positive
+            "caster_joint_angle": -0.8,  # term >= 0
+            "caster_oscillation_mask": 1.5,
+            "body_height": 1.0,
+            "lin_vel_z": -2.0,  # Table I: -v_z^2, weight 2.0
+            "ang_vel_xy": -0.05,  # Table I: -|w_xy|^2, weight 0.05
+            "collision": -1.0,
+            "termination": -10.0,
+            "joint_acc": -2.5e-7,  # Table I prints -|qdd|^2 with weight -2.5e-7 (a reward): fixed
+            "joint_pos_limits": -1.0,  # Table I: -|.|, weight 1.0
+            "joint_vel_limits": -1.0,
+            "torque_limits": -1.0,
+            "joint_deviation": -0.8,  # Table I: -|q - q0|, weight 0.8
+            "action_rate": -0.01,  # Table I: -|a_t - a_t-1|^2, weight 0.01
+        },
+        tracking_sigma=1.0,  # Table I: exp(-|error|^2)
+        base_height_target=0.364,  # the stand keyframe's trunk height
+    )
+
+
+@dataclass
+class CasterOmniCfg(LeggedEnvCfg):
+    robot: Literal["caster", "point"] = "caster"
+    commands: CommandsCfg = field(
+        default_factory=lambda: CommandsCfg(
+            resampling_time=5.0,
+            ranges=CommandRanges(lin_vel_x=(-1.0, 1.0), lin_vel_y=(-0.8, 0.8), ang_vel_yaw=(-1.0, 1.0)),
+            curriculum=True,
+            max_lin_vel_x=(-4.0, 4.0),  # the paper reached 4.1 m/s backwards
+        )
+    )
+    modes: ModesCfg = field(default_factory=ModesCfg)
+    rewards: RewardsCfg = field(default_factory=_caster_rewards)
+    body_height_length_scale: float = field(default=0.1, metadata={"min": 1e-3})
+    domain_rand: DomainRandCfg = field(
+        default_factory=lambda: DomainRandCfg(
+            com_offset_range=(-0.05, 0.05),  # paper: trunk CoM offset U[-0.05, 0.05] m
+            kp_scale_range=(0.9, 1.1),  # paper: Kp, Kd x U[0.9, 1.1]
+            kd_scale_range=(0.9, 1.1),
+            joint_damping={"*_caster_swivel_joint": [0.01, 0.1]},  # paper: swivel damping U[0.01, 0.1]
+            joint_frictionloss_scale={"*_caster_wheel_joint": [0.5, 1.5]},  # rolling resistance
+        )
+    )
+    # Trunk contact ends the episode (with Table I's penalty); a robot flipped onto
+    # its folded legs can rest without trunk contact, so tilt beyond 70 deg ends it too.
+    termination: TerminationCfg = field(default_factory=lambda: TerminationCfg(max_tilt_deg=70.0))
+
+
+class CasterOmniEnv(LeggedEnv):
+    OBSERVATIONS = {
+        "policy": ("commands", "mode_mask", "ang_vel", "projected_gravity", "joint_pos", "joint_vel", "actions"),
+        "critic": ("caster_zaxis", "swivel_pos", "swivel_vel", "lin_vel"),
+    }
+    COLLISION_SENSORS = tuple(
+        f"{leg}_{part}_contact" for leg in go2.LEGS for part in ("thigh", "calf", "caster_base", "caster_fork")
+    )
+
+    cfg: CasterOmniCfg
+
+    def __init__(self, cfg: CasterOmniCfg):
+        self._check_modes(cfg.modes)
+        super().__init__(cfg)
+
+    @staticmethod
+    def _check_modes(modes: ModesCfg) -> None:
+        for name, mask in modes.masks.items():
+            if len(mask) != 4 or any(m not in (0, 1) for m in mask):
+                raise ConfigError(f"modes.masks.{name}: {mask} must be 4 values of 0 or 1 ([FL, FR, RL, RR])")
+            if all(m == 1 for m in mask):
+                raise ConfigError(f"modes.masks.{name}: at least one caster must oscillate (a 0 in the mask)")
+        unknown = [m for m in modes.sample if m not in modes.masks]
+        if unknown or not modes.sample:
+            raise ConfigError(f"modes.sample: {modes.sample} must name modes from {sorted(modes.masks)}")
+
+    # --- state -------------------------------------------------------------------
+    def _init_task_buffers(self) -> None:
+        m = self.model
+        self.swivel_qadr = torch.tensor([m.joint(j).qposadr[0] for j in go2.SWIVEL_JOINTS], device=self.device)
+        self.swivel_dadr = torch.tensor([m.joint(j).dofadr[0] for j in go2.SWIVEL_JOINTS], device=self.device)
+        self.mode_names = list(self.cfg.modes.masks)
+        self.mode_table = torch.tensor([self.cfg.modes.masks[n] for n in self.mode_names], device=self.device).float()
+        self.sampled_modes = torch.tensor([self.mode_names.index(n) for n in self.cfg.modes.sample], device=self.device)
+        self.mode_mask = torch.zeros(self.num_envs, 4, device=self.device)
+        self.external_modes = False
+        self._refresh_caster_state()
+
+    def _refresh_state(self) -> None:
+        super()._refresh_state()
+        if hasattr(self, "swivel_qadr"):
+            self._refresh_caster_state()
+
+    def _refresh_caster_state(self) -> None:
+        qpos, qvel = self.sim.qpos, self.sim.qvel
+        self.swivel_pos = wrap_to_pi(qpos[:, self.swivel_qadr].float())
+        self.swivel_vel = qvel[:, self.swivel_dadr].float()
+        self.caster_zaxis = self.sensor_values(tuple(f"{leg}_caster_zaxis" for leg in go2.LEGS)).view(-1, 4, 3)
+
+    def caster_state(self) -> dict[str, torch.Tensor]:
+        """Per caster (num_envs, 4): swivel angle phi and the paper's error angles (rad)."""
+        return {
+            "phi": self.swivel_pos,
+            "theta_diffz": self.theta_diffz(),
+            "theta_diffphi": self.theta_diffphi(),
+        }
+
+    def commanded_speed(self) -> torch.Tensor:
+        return torch.linalg.norm(self.commands[:, :2], dim=1)
+
+    def theta_diffz(self) -> torch.Tensor:
+        """Angle in [0, pi] between each swivel axis's horizontal projection and the
+        commanded planar velocity, in the world frame."""
+        yaw = yaw_from_quat(self.base_quat)
+        cmd_world = yaw + torch.atan2(self.commands[:, 1], self.commands[:, 0])
+        axis = torch.atan2(self.caster_zaxis[..., 1], self.caster_zaxis[..., 0])
+        return wrap_to_pi(axis - cmd_world.unsqueeze(1)).abs()
+
+    def theta_diffphi(self) -> torch.Tensor:
+        """Angle in [0, pi] between each caster's deflection phi and the command
+        direction atan2(vy, vx) in the base frame."""
+        direction = torch.atan2(self.commands[:, 1], self.commands[:, 0])
+        return wrap_to_pi(self.swivel_pos - direction.unsqueeze(1)).abs()
+
+    # --- propulsion modes ----------------------------------------------------------------
+    def set_mode(self, mode: str | list[int] | torch.Tensor, env_ids: torch.Tensor | None = None) -> None:
+        """Set the propulsion mode (a name from cfg.modes.masks or a 4-mask); switches
+        off the automatic mode sampling."""
+        if isinstance(mode, str):
+            if mode not in self.cfg.modes.masks:
+                raise KeyError(f"unknown propulsion mode {mode!r}; known: {sorted(self.cfg.modes.masks)}")
+            mode = self.cfg.modes.masks[mode]
+        mask = torch.as_tensor(mode, dtype=torch.float32, device=self.device)
+        if mask.shape[-1] != 4 or not ((mask == 0) | (mask == 1)).all():
+            raise ValueError(f"a propulsion mask is 4 values of 0 or 1 ([FL, FR, RL, RR]), got {mode}")
+        self.external_modes = True
+        self.mode_mask[env_ids if env_ids is not None else slice(None)] = mask
+
+    def _sample_modes(self, env_ids: torch.Tensor) -> None:
+        pick = self.sampled_modes[torch.randint(len(self.sampled_modes), (len(env_ids),), device=self.device)]
+        self.mode_mask[env_ids] = self.mode_table[pick]
+
+    def _reset_task_state(self, env_ids: torch.Tensor) -> None:
+        if not self.external_modes:
+            self._sample_modes(env_ids)
+
+    def resample_commands(self, env_ids: torch.Tensor) -> None:
+        super().resample_commands(env_ids)
+        if not self.external_modes:
+            switch = torch.rand(len(env_ids), device=self.device) < self.cfg.modes.switch_probability
+            if switch.any():
+                self._sample_modes(env_ids[switch])
+
+    # --- observations ------------------------------------------------------------------
+    def _obs_mode_mask(self) -> torch.Tensor:
+        return self.mode_mask
+
+    def _obs_caster_zaxis(self) -> torch.Tensor:
+        return self.caster_zaxis.reshape(self.num_envs, 12)
+
+    def _obs_swivel_pos(self) -> torch.Tensor:
+        return self.swivel_pos
+
+    def _obs_swivel_vel(self) -> torch.Tensor:
+        return self.swivel_vel
+
+    # --- Table I terms that are the caster task's own -------------------------------------
+    def _gate(self) -> torch.Tensor:
+        return (self.commanded_speed() > GATE_SPEED).float()
+
+    def _reward_caster_posture(self) -> torch.Tensor:
+        """Table I prints max(cos(pi/2) - cos(theta_diffz), 0) with weight +1.5, which
+        would reward error angles above 90 deg. Intent (section IV.B): keep
+        |theta_diffz| < 90 deg. Here: sum of min(cos(theta_diffz), 0) <= 0, zero below
+        90 deg and negative above, weight +1.5."""
+        return torch.sum(torch.cos(self.theta_diffz()).clamp(max=0.0), dim=1) * self._gate()
+
+    def _reward_caster_joint_angle(self) -> torch.Tensor:
+        """Table I prints min(cos(theta_diffphi) - cos(pi/2), 0) with weight -0.8, which
+        would also reward error angles above 90 deg. Intent: keep the caster deflection
+        within 90 deg of the command direction. Here: sum of max(-cos(theta_diffphi), 0)
+        >= 0, zero below 90 deg, positive above, weight -0.8."""
+        return torch.sum((-torch.cos(self.theta_diffphi())).clamp(min=0.0), dim=1) * self._gate()
+
+    def _reward_caster_oscillation_mask(self) -> torch.Tensor:
+        """Table I as printed: M_i exp(-|dphi_i|) + 0.5 (1 - M_i)(1 - exp(-|dphi_i|)):
+        a still caster earns up to 1 where M_i = 1, a moving one up to 0.5 where M_i = 0."""
+        still = torch.exp(-self.swivel_vel.abs())
+        m = self.mode_mask
+        return torch.sum(m * still + 0.5 * (1 - m) * (1 - still), dim=1) * self._gate()
+
+    def _reward_body_height(self) -> torch.Tensor:
+        err = (self.base_pos[:, 2] - self.cfg.rewards.base_height_target) / self.cfg.body_height_length_scale
+        return torch.exp(-(err**2))
+
+    def _reward_joint_deviation(self) -> torch.Tensor:
+        """Table I's standing joint-position term: |theta_a - theta_0| (L2 norm), always on."""
+        return torch.linalg.norm(self.joint_pos - self.default_joint_pos, dim=1)
+
+
+def caster_omni_train_cfg() -> TrainCfg:
+    return TrainCfg(experiment_name="caster_omni", max_iterations=3000)

@@ -1,0 +1,189 @@
+"""caster_omni: observation layout, Table I terms on hand-made states, propulsion
+modes, randomisation on both backends, and PPO plumbing."""
+
+import copy
+import math
+
+import pytest
+import torch
+from rsl_rl.runners import OnPolicyRunner
+
+from legged_casters import registry
+from legged_casters.config import ConfigError
+from legged_casters.robot import go2
+
+CPU = ["sim.backend=cpu"]
+
+
+@pytest.fixture(scope="module")
+def env():
+    e = registry.make_env("caster_omni", CPU, num_envs=4)
+    yield e
+    e.close()
+
+
+def _slice(env, group, term):
+    start = 0
+    for name, dim, _ in env.obs_layout[group]:
+        if name == term:
+            return slice(start, start + dim)
+        start += dim
+    raise KeyError(term)
+
+
+def test_observation_layout(env):
+    assert [n for n, _, _ in env.obs_layout["policy"]] == [
+        "commands", "mode_mask", "ang_vel", "projected_gravity", "joint_pos", "joint_vel", "actions",
+    ]  # fmt: skip
+    assert [(n, d) for n, d, _ in env.obs_layout["critic"]] == [
+        ("caster_zaxis", 12), ("swivel_pos", 4), ("swivel_vel", 4), ("lin_vel", 3),
+    ]  # fmt: skip
+    assert env.observation_dims() == {"policy": 3 + 4 + 3 + 3 + 12 + 12 + 12, "critic": 12 + 4 + 4 + 3}
+    obs = env.get_observations()
+    assert obs["policy"].shape == (4, 49) and obs["critic"].shape == (4, 23)
+    # The critic's swivel axes are the model's caster-base z axes (unit vectors, near vertical standing).
+    z = obs["critic"][:, _slice(env, "critic", "caster_zaxis")].view(4, 4, 3)
+    assert torch.allclose(z.norm(dim=-1), torch.ones(4, 4), atol=1e-5)
+    assert (z[..., 2] > 0.7).all()
+
+
+def _hand_made(env, command, zaxis_dir=None, phi=None, phi_dot=None, mask=None):
+    env.commands[:] = torch.tensor(command)
+    env.base_quat = torch.tensor([1.0, 0.0, 0.0, 0.0]).expand(env.num_envs, 4)
+    if zaxis_dir is not None:  # horizontal direction (rad) of every swivel axis, tilted 20 deg
+        tilt = math.radians(20)
+        z = torch.tensor([math.sin(tilt) * math.cos(zaxis_dir), math.sin(tilt) * math.sin(zaxis_dir), math.cos(tilt)])
+        env.caster_zaxis = z.expand(env.num_envs, 4, 3).clone()
+    if phi is not None:
+        env.swivel_pos = torch.full((env.num_envs, 4), float(phi))
+    if phi_dot is not None:
+        env.swivel_vel = torch.as_tensor(phi_dot, dtype=torch.float32).expand(env.num_envs, 4).clone()
+    if mask is not None:
+        env.mode_mask = torch.tensor(mask, dtype=torch.float32).expand(env.num_envs, 4).clone()
+
+
+def test_posture_term_is_zero_below_90_degrees_and_negative_above(env):
+    _hand_made(env, [1.0, 0.0, 0.0], zaxis_dir=math.radians(60))  # axis 60 deg off the command
+    assert torch.allclose(env._reward_caster_posture(), torch.zeros(4))
+    _hand_made(env, [1.0, 0.0, 0.0], zaxis_dir=math.radians(150))  # axis tilted against the command
+    expected = 4 * math.cos(math.radians(150))
+    assert torch.allclose(env._reward_caster_posture(), torch.full((4,), expected), atol=1e-4)
+    assert env.reward_terms["caster_posture"][1] > 0  # positive weight x negative term = penalty
+    # Lateral command: an axis tilted to the left is aligned with vy > 0.
+    _hand_made(env, [0.0, 0.5, 0.0], zaxis_dir=math.radians(90))
+    assert torch.allclose(env.theta_diffz(), torch.zeros(4, 4), atol=1e-5)
+
+
+def test_joint_angle_term_penalises_deflection_against_the_command(env):
+    _hand_made(env, [-0.6, 0.0, 0.0], phi=math.pi)  # rolling backwards, casters trailing: fine
+    assert torch.allclose(env._reward_caster_joint_angle(), torch.zeros(4), atol=1e-6)
+    _hand_made(env, [0.6, 0.0, 0.0], phi=math.pi)  # commanded forwards with casters still reversed
+    assert torch.allclose(env._reward_caster_joint_angle(), torch.full((4,), 4.0), atol=1e-5)
+    assert env.reward_terms["caster_joint_angle"][1] < 0
+
+
+def test_mask_term_rewards_still_masked_and_moving_unmasked_casters(env):
+    fast, still = 20.0, 0.0
+    _hand_made(env, [1.0, 0.0, 0.0], phi_dot=[still, still, fast, fast], mask=[1, 1, 0, 0])
+    good = env._reward_caster_oscillation_mask()
+    _hand_made(env, [1.0, 0.0, 0.0], phi_dot=[fast, fast, still, still], mask=[1, 1, 0, 0])
+    bad = env._reward_caster_oscillation_mask()
+    assert torch.allclose(good, torch.full((4,), 2 * 1.0 + 2 * 0.5), atol=1e-6)
+    assert torch.allclose(bad, torch.zeros(4), atol=1e-6)
+
+
+def test_gated_terms_do_not_act_below_0_2_m_per_s(env):
+    _hand_made(env, [0.15, 0.1, 0.5], zaxis_dir=math.pi, phi=2.5, phi_dot=[5.0] * 4, mask=[1, 1, 1, 0])
+    for term in ("caster_posture", "caster_joint_angle", "caster_oscillation_mask"):
+        assert torch.allclose(getattr(env, f"_reward_{term}")(), torch.zeros(4)), term
+    _hand_made(env, [0.3, 0.0, 0.0], zaxis_dir=math.pi, phi=2.5, phi_dot=[5.0] * 4, mask=[1, 1, 1, 0])
+    for term in ("caster_posture", "caster_joint_angle", "caster_oscillation_mask"):
+        assert not torch.allclose(getattr(env, f"_reward_{term}")(), torch.zeros(4)), term
+
+
+def test_table_one_weights_and_sign_decisions(env):
+    dt = env.dt
+    scales = {name: scale / dt for name, (_, scale) in env.reward_terms.items()}
+    assert scales["tracking_lin_vel"] == pytest.approx(2.0) and scales["tracking_ang_vel"] == pytest.approx(0.5)
+    assert scales["joint_acc"] == pytest.approx(-2.5e-7)  # acceleration is penalised
+    assert scales["termination"] == pytest.approx(-10.0)
+    assert env._reward_joint_acc().min() >= 0
+
+
+def test_modes_reach_the_observation_and_switch_mid_episode():
+    e = registry.make_env("caster_omni", CPU, num_envs=2)
+    sl = _slice(e, "policy", "mode_mask")
+    e.set_mode("front_wheel")
+    obs, *_ = e.step(torch.zeros(2, 12))
+    assert torch.equal(obs["policy"][:, sl], torch.tensor([[0.0, 0, 1, 1]] * 2))
+    e.set_mode("rear_wheel")
+    obs, *_ = e.step(torch.zeros(2, 12))
+    assert torch.equal(obs["policy"][:, sl], torch.tensor([[1.0, 1, 0, 0]] * 2))
+    assert (e.episode_length_buf == 2).all()  # same episode
+    with pytest.raises(KeyError, match="unknown propulsion mode"):
+        e.set_mode("hover")
+    with pytest.raises(ValueError, match="4 values of 0 or 1"):
+        e.set_mode([1, 0, 2, 0])
+
+
+def test_modes_switch_on_their_own_during_training():
+    e = registry.make_env(
+        "caster_omni", CPU + ["modes.switch_probability=1.0", "commands.resampling_time=0.04"], num_envs=8
+    )
+    seen = set()
+    for _ in range(30):
+        e.step(torch.zeros(8, 12))
+        seen |= {tuple(m) for m in e.mode_mask.int().tolist()}
+    assert seen == {(0, 0, 0, 0), (0, 0, 1, 1), (1, 1, 0, 0)}
+
+
+def test_any_non_empty_subset_of_oscillating_casters_is_configurable():
+    e = registry.make_env(
+        "caster_omni", CPU + ["modes.masks={'fl_only': [0, 1, 1, 1]}", "modes.sample=['fl_only']"], num_envs=2
+    )
+    assert torch.equal(e.mode_mask, torch.tensor([[0.0, 1, 1, 1]] * 2))
+    with pytest.raises(ConfigError, match="at least one caster must oscillate"):
+        registry.make_env("caster_omni", CPU + ["modes.masks={'none': [1, 1, 1, 1]}", "modes.sample=['none']"])
+    with pytest.raises(ConfigError, match="must name modes"):
+        registry.make_env("caster_omni", CPU + ["modes.sample=['warp_drive']"], num_envs=2)
+
+
+@pytest.mark.parametrize("backend", ["cpu", "warp"])
+def test_paper_randomisation_lands_in_each_backend(backend):
+    e = registry.make_env("caster_omni", [f"sim.backend={backend}", "sim.device=cpu"], num_envs=3)
+    damping = e.sim.get_model_field("dof_damping")
+    swivel = [e.model.joint(j).dofadr[0] for j in go2.SWIVEL_JOINTS]
+    assert damping[:, swivel].min() >= 0.01 - 1e-7 and damping[:, swivel].max() <= 0.1 + 1e-7
+    assert damping[:, swivel].std() > 0.005
+    wheel = [e.model.joint(j).dofadr[0] for j in go2.WHEEL_JOINTS]
+    floss = e.sim.get_model_field("dof_frictionloss")[:, wheel] / e.model.dof_frictionloss[wheel[0]]
+    assert floss.min() >= 0.5 - 1e-5 and floss.max() <= 1.5 + 1e-5
+    kp = e.sim.get_model_field("actuator_gainprm")[:, :, 0] / torch.tensor(go2.kp(), dtype=torch.float64)
+    assert kp.min() >= 0.9 - 1e-5 and kp.max() <= 1.1 + 1e-5
+    com = e.sim.get_model_field("body_ipos")[:, e.trunk_id] - torch.tensor(e.model.body_ipos[e.trunk_id])
+    assert com.abs().max() <= 0.05 + 1e-6
+    obs, rew, *_ = e.step(torch.zeros(3, 12))
+    assert torch.isfinite(rew).all()
+    e.close()
+
+
+def test_two_iterations_of_rsl_rl_ppo_with_the_asymmetric_critic(tmp_path):
+    e = registry.make_env("caster_omni", CPU, num_envs=4)
+    cfg = registry.get_task("caster_omni").train_cfg.to_rsl_rl()
+    cfg["num_steps_per_env"] = 8
+    runner = OnPolicyRunner(e, copy.deepcopy(cfg), log_dir=str(tmp_path), device="cpu")
+    assert runner.alg.actor.obs_dim == 49 and runner.alg.critic.obs_dim == 49 + 23
+    runner.learn(num_learning_iterations=2)
+    assert runner.current_learning_iteration == 1
+
+
+def test_long_random_rollout_stays_finite():
+    e = registry.make_env("caster_omni", CPU + ["domain_rand.push_interval_s=0.5"], num_envs=16)
+    torch.manual_seed(2)
+    for _ in range(300):
+        obs, rew, dones, extras = e.step(torch.randn(e.num_envs, e.num_actions))
+        assert torch.isfinite(obs["policy"]).all() and torch.isfinite(obs["critic"]).all()
+        assert torch.isfinite(rew).all()
+        for key, value in extras["log"].items():
+            assert torch.isfinite(torch.as_tensor(value)).all(), key
+    assert e.nonfinite_resets == 0
