@@ -372,3 +372,50 @@ def test_entry_point_exit_code_and_message():
     )
     assert out.returncode == 2
     assert "train.py: error: unknown task 'nope'; known tasks: " in out.stderr and TASK in out.stderr
+
+
+# --- a task with propulsion modes and casters ------------------------------------------------------------
+CASTER = "caster_omni"
+needs_caster = pytest.mark.skipif(CASTER not in registry.list_tasks(), reason="caster_omni is not registered")
+
+
+@needs_caster
+def test_caster_task_metadata_lists_its_modes_and_observation_layout():
+    env = registry.make_env(CASTER, ["sim.backend=cpu"], num_envs=1)
+    meta = export.policy_metadata(env, CASTER)
+    env.close()
+    assert meta["robot"] == "caster"
+    terms = [(t["name"], t["dim"]) for t in meta["observation"]["terms"]]
+    assert terms == [
+        ("commands", 3),
+        ("mode_mask", 4),
+        ("ang_vel", 3),
+        ("projected_gravity", 3),
+        ("joint_pos", 12),
+        ("joint_vel", 12),
+        ("actions", 12),
+    ]
+    assert meta["observation"]["dim"] == 49
+    assert meta["propulsion_modes"] == {
+        "four_wheel": [0, 0, 0, 0],
+        "front_wheel": [0, 0, 1, 1],
+        "rear_wheel": [1, 1, 0, 0],
+    }
+    assert yaml.safe_load(export.metadata_yaml(meta)) == meta
+
+
+@needs_caster
+def test_modes_profile_switches_4wd_fwd_rwd_and_plots_the_casters(tmp_path):
+    argv = ["--task", CASTER, "--policy", "zero", "--profile", "modes", "--duration", "0.6", "--num_envs", "1"]
+    argv += ["--headless", "--no_video", "--out", str(tmp_path)]
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert play.main(argv) == 0, buf.getvalue()
+    assert (tmp_path / "zero_modes_casters.png").is_file()
+    data = np.load(tmp_path / "zero_modes_data.npz")
+    assert data["phi"].shape == (30, 4) and data["theta_diffz"].shape == (30, 4)
+    masks = [tuple(int(v) for v in row) for row in data["mode"]]
+    assert list(dict.fromkeys(masks)) == [(0, 0, 0, 0), (0, 0, 1, 1), (1, 1, 0, 0)]
+    assert masks[0] == (0, 0, 0, 0) and masks[-1] == (1, 1, 0, 0)
+    if "env_mode" in data:  # the env took each mode (and kept it through resets)
+        assert np.array_equal(data["env_mode"], data["mode"])

@@ -391,6 +391,8 @@ def _run(args, src: PolicySource, env, policy, profile: Profile, headless: bool,
             }
             if mode is not None:
                 row["mode"] = np.asarray(mode[1], dtype=float)
+                if isinstance(getattr(env, "mode_mask", None), torch.Tensor):
+                    row["env_mode"] = env.mode_mask[0].cpu().numpy()  # what the env actually runs
             if has_caster:
                 state = env.caster_state()
                 for key in ("phi", "theta_diffz", "theta_diffphi"):
