@@ -419,3 +419,26 @@ def test_modes_profile_switches_4wd_fwd_rwd_and_plots_the_casters(tmp_path):
     assert masks[0] == (0, 0, 0, 0) and masks[-1] == (1, 1, 0, 0)
     if "env_mode" in data:  # the env took each mode (and kept it through resets)
         assert np.array_equal(data["env_mode"], data["mode"])
+
+
+@pytest.mark.skipif(shutil.which("xvfb-run") is None, reason="needs xvfb-run (Debian package xvfb)")
+def test_viewer_runs_under_a_virtual_display(exported, tmp_path):
+    out, _ = exported
+    cmd = ["xvfb-run", "-a", "-s", "-screen 0 800x600x24", sys.executable, str(REPO / "play.py")]
+    cmd += [
+        "--policy",
+        str(out / "policy.pt"),
+        "--viewer",
+        "--duration",
+        "0.4",
+        "--num_envs",
+        "1",
+        "--out",
+        str(tmp_path),
+    ]
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    env.pop("DISPLAY", None)
+    res = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=180)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert "profile steps: 20 steps" in res.stdout
+    assert (tmp_path / "policy_steps_velocity.png").is_file() and not list(tmp_path.glob("*.mp4"))

@@ -86,6 +86,15 @@ def resolve_device(device: str | None, backend: str) -> str:
     return str(parsed)
 
 
+def limit_cpu_threads(device: str, threads: int | None = None) -> None:
+    """One torch thread on a CPU device unless told otherwise. On the 2-core machines,
+    torch's OpenMP threads spin against the simulator's rollout threads and any other
+    load: go2_flat iterations took 31 s with 2 threads and 5 s with 1 (see README)."""
+    n = threads or (1 if str(device).startswith("cpu") else None)
+    if n:
+        torch.set_num_threads(n)
+
+
 # --- log folders and runs ------------------------------------------------------------------
 def log_root(flag: str | None, default: Path | str | None = None) -> Path:
     """--log_root, else $LEGGED_CASTERS_LOG_ROOT, else `default` (the repo's logs/), else ./logs."""

@@ -287,6 +287,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def export(args: argparse.Namespace, default_log_root: Path | None) -> int:
     sel = common.select_checkpoint(args, default_log_root)
+    common.limit_cpu_threads("cpu")
     env = common.make_eval_env(sel, num_envs=max(2, args.parity_envs), overrides=[])
     try:
         actor = load_actor(env, sel.train_cfg, sel.ckpt, sel.ckpt_path)

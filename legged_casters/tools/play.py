@@ -308,6 +308,7 @@ def play(args: argparse.Namespace, default_log_root: Path | None) -> int:
     profile = Profile(args.profile, args.duration or DEFAULT_DURATION[args.profile], tuple(args.cmd))
 
     # --- simulation --------------------------------------------------------------------------------
+    common.limit_cpu_threads(env_cfg.sim.device if args.sim_backend == "warp" else "cpu")
     env = src.spec.env_class(env_cfg)
     try:
         policy = _make_policy(src, env)
