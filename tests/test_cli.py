@@ -52,7 +52,9 @@ def _train(root: Path, *extra: str) -> tuple[int, str]:
 def run(tmp_path_factory):
     """A 2-iteration run, then resumed for 1 more iteration. Returns (root, run_dir, outputs)."""
     root = tmp_path_factory.mktemp("logs")
-    rc, out1 = _train(root, "--max_iterations", "2", "--run_name", "tiny", *SMALL)
+    rc, out1 = _train(
+        root, "--max_iterations", "2", "--run_name", "tiny", "--set", "commands.ranges.lin_vel_y=[-0.3,0.3]", *SMALL
+    )
     assert rc == 0, out1
     (run_dir,) = (root / TASK).iterdir()
     # Snapshot of the first invocation's last checkpoint, before the resume adds model_2.
@@ -87,6 +89,7 @@ def test_run_folder_holds_checkpoints_configs_git_state_and_events(run):
     assert not [n for n in names if n.endswith(".tmp")]
     env_cfg = load_yaml(type(registry.get_task(TASK).env_cfg), run_dir / "env.yaml")
     assert env_cfg.num_envs == NUM_ENVS and env_cfg.sim.backend == "cpu"
+    assert env_cfg.commands.ranges.lin_vel_y == (-0.3, 0.3)  # --set landed in the run's config
     train_cfg = load_yaml(type(registry.get_task(TASK).train_cfg), run_dir / "train.yaml")
     assert train_cfg.num_steps_per_env == STEPS and train_cfg.policy.actor_hidden_dims == (64, 64)
     git = yaml.safe_load((run_dir / "git.yaml").read_text())
@@ -293,6 +296,7 @@ def test_play_runs_an_exported_onnx_policy(exported, tmp_path):
         (["--set", "commands.nope=1"], "unknown config field 'commands.nope'"),
         (["--set", "control.action_scale=fast"], "expected a number"),
         (["--set", "num_envs=0"], "below the minimum"),
+        (["--set", "commands.ranges.lin_vel_x=[1]"], "expected 2 values"),
         (["--set", "noequals"], "must look like name.path=value"),
         (["--train-set", "algorithm.gamma=2"], "above the maximum"),
         (["--train-set", "policy.activation=swish"], "is not allowed"),
