@@ -182,7 +182,8 @@ def write_plots(data: dict[str, np.ndarray], out: Path, prefix: str, title: str,
         ax.set_ylabel(f"{label} [{unit}]")
         ax.grid(alpha=0.3)
     axes[0].legend(loc="upper right", fontsize=8)
-    axes[0].set_title(f"{title}: commanded vs measured (trunk frame, robot 0)")
+    resets = " (grey: robot 0 fell and was reset)" if data["done"].any() else ""
+    axes[0].set_title(f"{title}: commanded vs measured (trunk frame, robot 0){resets}", fontsize=10)
     axes[-1].set_xlabel("time [s]")
     _mark_modes(axes, data)
     paths.append(_save(fig, out / f"{prefix}_velocity.png"))
@@ -221,6 +222,10 @@ def write_plots(data: dict[str, np.ndarray], out: Path, prefix: str, title: str,
 
 
 def _mark_modes(axes, data) -> None:
+    """Dotted red lines where the propulsion mode changes, grey ones where robot 0 was reset."""
+    for i in np.nonzero(data["done"] > 0)[0]:
+        for ax in axes:
+            ax.axvline(data["t"][i], color="0.5", ls="-", lw=2, alpha=0.4)
     if "mode" not in data:
         return
     mode = data["mode"]
