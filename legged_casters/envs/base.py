@@ -171,7 +171,9 @@ class LeggedEnv(VecEnv):
         self.base_quat = qpos[:, 3:7]
         self.base_lin_vel_world = qvel[:, 0:3]
         self.base_lin_vel = quat_rotate_inverse(self.base_quat, self.base_lin_vel_world)
-        self.base_ang_vel = qvel[:, 3:6]  # a free joint's angular velocity is in the body frame
+        # A free joint's angular velocity is in the trunk frame: for the rigid trunk it is
+        # what the IMU gyro measures (the imu site is not rotated), the deploy bridge's input.
+        self.base_ang_vel = qvel[:, 3:6]
         gravity = torch.tensor([0.0, 0.0, -1.0], device=self.device).expand(self.num_envs, 3)
         self.projected_gravity = quat_rotate_inverse(self.base_quat, gravity)
         self.joint_pos = qpos[:, self.joint_qadr]
