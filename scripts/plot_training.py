@@ -1,0 +1,61 @@
+"""Plot training curves of runs from their TensorBoard events, and print start/end values.
+
+python scripts/plot_training.py logs/go2_flat/<run> logs/caster_omni/<run> --out docs/training_curves.png
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator  # noqa: E402
+
+TAGS = (
+    ("Train/mean_reward", "mean episode return"),
+    ("Train/mean_episode_length", "mean episode length (steps)"),
+    ("Episode_Reward/tracking_lin_vel", "linear-velocity tracking reward (per s)"),
+    ("Episode_Reward/tracking_ang_vel", "yaw-rate tracking reward (per s)"),
+)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("runs", nargs="+", type=Path)
+    p.add_argument("--out", type=Path, default=Path("docs/training_curves.png"))
+    p.add_argument("--window", type=int, default=10, help="iterations averaged for the start/end values")
+    args = p.parse_args(argv)
+    fig, axes = plt.subplots(1, len(TAGS), figsize=(4.2 * len(TAGS), 3.6))
+    for run in args.runs:
+        if not run.is_dir():
+            print(f"no run folder {run}", file=sys.stderr)
+            return 2
+        acc = EventAccumulator(str(run))
+        acc.Reload()
+        label = f"{run.parent.name}/{run.name}"
+        for ax, (tag, title) in zip(axes, TAGS, strict=True):
+            if tag not in acc.Tags()["scalars"]:
+                continue
+            events = acc.Scalars(tag)
+            steps, values = [e.step for e in events], [e.value for e in events]
+            ax.plot(steps, values, label=run.parent.name)
+            ax.set_title(title, fontsize=10)
+            ax.set_xlabel("iteration")
+            ax.grid(alpha=0.3)
+            w = args.window
+            start, end = sum(values[:w]) / len(values[:w]), sum(values[-w:]) / len(values[-w:])
+            print(f"{label} {tag}: first {w} it {start:.3f} -> last {w} it {end:.3f} ({len(values)} it)")
+    axes[0].legend(fontsize=8)
+    fig.tight_layout()
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(args.out, dpi=100)
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
