@@ -86,6 +86,7 @@ class Fault(enum.IntEnum):
     STALE_STATE = 1
     NONFINITE_ACTION = 2
     OPERATOR_STOP = 3
+    INTERNAL_ERROR = 4  # an unexpected exception in the control loop
 
 
 REJECT_REASONS: tuple[str, ...] = ("malformed", "version", "nonfinite", "out_of_range", "out_of_order")
@@ -304,7 +305,7 @@ class OperatorCommand:
 
 # --- bridge status -----------------------------------------------------------------------
 _N_REASONS = len(REJECT_REASONS)
-_STATUS_BODY = struct.Struct(f"<BBxx{_N_REASONS}IIIIIIIQQ6f")
+_STATUS_BODY = struct.Struct(f"<BBxx{_N_REASONS}I5I2Q6f")
 
 
 @dataclass

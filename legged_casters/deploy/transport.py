@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 from pathlib import Path
 
 import zenoh
@@ -29,6 +30,12 @@ def add_zenoh_args(parser: argparse.ArgumentParser) -> None:
     )
     g.add_argument("--zenoh-config", type=Path, default=None, help="zenoh json5 config file, applied first")
     g.add_argument("--namespace", default="go2", help="robot namespace: keys are <ns>/state, <ns>/cmd, ...")
+    parser.add_argument(
+        "--rt-priority",
+        type=int,
+        default=0,
+        help="run the whole process under SCHED_FIFO with this priority (1-99; needs CAP_SYS_NICE; 0: off)",
+    )
 
 
 def make_config(
@@ -60,7 +67,23 @@ def make_config(
     return cfg
 
 
+def set_realtime(priority: int) -> bool:
+    """Put the calling thread (and the threads it starts later, zenoh's included) under
+    SCHED_FIFO. On a loaded machine this removes the multi-millisecond scheduling gaps
+    that would otherwise trip the state watchdog. Returns False (with a warning) when
+    the OS refuses."""
+    if priority <= 0:
+        return False
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        return True
+    except (PermissionError, OSError, AttributeError) as e:
+        print(f"warning: cannot set SCHED_FIFO priority {priority}: {e}; running with normal priority", flush=True)
+        return False
+
+
 def open_session(args: argparse.Namespace) -> zenoh.Session:
+    set_realtime(getattr(args, "rt_priority", 0))
     return zenoh.open(make_config(args.mode, args.listen, args.connect, args.multicast_scouting, args.zenoh_config))
 
 
