@@ -2,13 +2,14 @@
 
 Used by the tests and the benchmark so they do not depend on the training code. The
 policy is affine, ``actions = obs @ W + b``: with the defaults it holds the default
-pose (W = 0, b = 0); ``lean_gain`` g makes every thigh target follow the forward
-command, action_thigh = g * vx (target = default + action_scale * g * vx), so a
-forward command visibly tilts the thighs. ``nan_above`` v adds ``0 * sqrt(v - obs[0])``,
+pose (W = 0, b = 0); ``crouch_gain`` g makes the legs fold with the forward command,
+action_thigh = g * vx and action_calf = -2 g * vx (targets = default + action_scale *
+action): the feet stay under the hips and the trunk lowers (about 3 cm for g = 0.4,
+vx = 1), an open-loop response that is easy to check. ``nan_above`` v adds ``0 * sqrt(v - obs[0])``,
 which is NaN once the first observation value (vx) exceeds v: a policy that fails on
 demand.
 
-    python -m legged_casters.deploy.simple_policy OUT_DIR [--lean-gain 0.4] [--robot caster]
+    python -m legged_casters.deploy.simple_policy OUT_DIR [--crouch-gain 0.4] [--robot caster]
 """
 
 from __future__ import annotations
@@ -87,7 +88,7 @@ def _onnx_model(w: np.ndarray, b: np.ndarray, nan_above: float | None) -> onnx.M
 
 def write_policy(
     out_dir: str | Path,
-    lean_gain: float = 0.0,
+    crouch_gain: float = 0.0,
     robot: str = "caster",
     terms: list[dict] | None = None,
     nan_above: float | None = None,
@@ -102,11 +103,13 @@ def write_policy(
     w = np.zeros((dim, 12), np.float32)
     b = np.zeros(12, np.float32) if bias is None else np.asarray(bias, np.float32)
     names = [t["name"] for t in terms]
-    if lean_gain and "commands" in names:
+    if crouch_gain and "commands" in names:
         vx_index = sum(int(t["dim"]) for t in terms[: names.index("commands")])
         for j, joint in enumerate(go2.ACTUATED_JOINTS):
             if "_thigh_" in joint:
-                w[vx_index, j] = lean_gain
+                w[vx_index, j] = crouch_gain
+            elif "_calf_" in joint:
+                w[vx_index, j] = -2.0 * crouch_gain
     onnx.save(_onnx_model(w, b, nan_above), str(out / "policy.onnx"))
     torch.jit.script(_Affine(w, b, nan_above)).save(str(out / "policy.pt"))
     meta = {
@@ -136,10 +139,10 @@ def write_policy(
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("out_dir", type=Path)
-    p.add_argument("--lean-gain", type=float, default=0.0)
+    p.add_argument("--crouch-gain", type=float, default=0.0)
     p.add_argument("--robot", choices=("caster", "point"), default="caster")
     args = p.parse_args(argv)
-    print(write_policy(args.out_dir, args.lean_gain, args.robot))
+    print(write_policy(args.out_dir, args.crouch_gain, args.robot))
     return 0
 
 
