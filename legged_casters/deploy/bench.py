@@ -106,6 +106,7 @@ def run(args: argparse.Namespace) -> dict[str, float]:
     cmd_times: list[float] = []
     statuses: list[P.BridgeStatus] = []
     measuring = threading.Event()
+    final_status = None
 
     def on_cmd(sample):
         now = time.monotonic()
@@ -136,6 +137,7 @@ def run(args: argparse.Namespace) -> dict[str, float]:
             measuring.set()
             time.sleep(args.duration)
             measuring.clear()
+            final_status = statuses[-1] if statuses else None
         else:
             pub = transport.fast_publisher(session, keys["state"])
             sender = P.Sender()
@@ -169,8 +171,9 @@ def run(args: argparse.Namespace) -> dict[str, float]:
                     pub_time[h.seq] = time.monotonic()
                 pub.put(payload)
                 k += 1
-            time.sleep(0.1)
+            time.sleep(0.01)
             measuring.clear()
+            final_status = statuses[-1] if statuses else None
     finally:
         for s in subs:
             s.undeclare()
@@ -188,7 +191,7 @@ def run(args: argparse.Namespace) -> dict[str, float]:
     lat = np.asarray(latencies) * 1e3
     periods = np.diff(np.asarray(cmd_times))
     jit = np.abs(periods - dt) * 1e3
-    st = statuses[-1] if statuses else None
+    st = final_status
     print(f"bench: robot={args.robot}, control {1 / dt:.0f} Hz, {args.duration:.0f} s, rt_priority={args.rt_priority}")
     print(f"  state publication -> command received: {percentiles(lat)}")
     if len(periods):
@@ -198,7 +201,8 @@ def run(args: argparse.Namespace) -> dict[str, float]:
         )
     if st is not None:
         print(
-            f"  bridge status: {P.BridgeState(st.state).name}, rate {st.rate_hz:.3f} Hz, jitter p99 "
+            f"  bridge status at the end: {P.BridgeState(st.state).name} ({P.Fault(st.fault).name}), "
+            f"rate {st.rate_hz:.3f} Hz, jitter p99 "
             f"{st.jitter_p99_ms:.3f} ms, max {st.jitter_max_ms:.3f} ms, inference {st.inference_mean_ms:.3f} ms, "
             f"rejected {st.rejected_by_reason()}"
         )

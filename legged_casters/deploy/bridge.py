@@ -7,11 +7,12 @@ policy.pt). The control loop and its safety rules (docs/deploy.md has the detail
 
 * Clock. The robot's state stream is the steady clock: a policy step is taken on
   the first state whose robot timestamp reaches the next absolute deadline
-  ``t0 + k * control_dt`` (within ``--stamp-tolerance-ms``), so a command answers
-  the state it was computed from with only transport + inference latency, and the
-  period is the robot's, not this process's. The bridge's own monotonic clock
-  supervises with absolute-deadline waits (a condition variable, no spinning): state
-  staleness, damping commands while faulted, status messages.
+  ``t0 + k * control_dt`` (within ``--stamp-tolerance-ms``), in the subscriber's
+  thread as the state arrives, so a command answers the state it was computed from
+  with only transport + inference latency, and the period is the robot's, not this
+  process's. A supervisor thread on the bridge's own monotonic clock sleeps to
+  absolute deadlines (a condition variable, no spinning) for the state-staleness
+  limit, the damping commands while faulted and the status messages.
 * WAITING: nothing is published until a valid state has arrived.
 * STANDUP: the targets ramp from the measured pose to ``default_joint_pos`` over
   ``--standup-time`` with the export's gains; then the policy runs (RUNNING).
@@ -115,9 +116,6 @@ class Bridge:
         # shared with the callbacks (guarded by _cv)
         self._latest: P.RobotState | None = None
         self._latest_arrival = 0.0
-        self._new_state = False
-        self._pending_stop = False
-        self._pending_reset = False
         self.commands = np.zeros(3)
         self.mode_mask = self.mode_masks.get(P.PropulsionMode.FOUR_WHEEL, np.zeros(4))
         self._operator_arrival = -1.0
@@ -154,10 +152,15 @@ class Bridge:
                 self._reject(e)
                 return
             self.received_state += 1
+            self._check_stale(now)  # a state arriving after the limit does not undo the fault
             self._latest = msg
             self._latest_arrival = now
-            self._new_state = True
-            self._cv.notify()
+            # the control step runs right here, in the subscriber's thread: no hand-off latency
+            if self.state is P.BridgeState.WAITING or (
+                self.state in (P.BridgeState.STANDUP, P.BridgeState.RUNNING) and self._due(msg.header.stamp_ns)
+            ):
+                self._control_step(msg, now)
+            self._cv.notify()  # new stale deadline for the supervisor
 
     def on_operator(self, payload: bytes) -> None:
         now = time.monotonic()
@@ -179,9 +182,10 @@ class Bridge:
             self.mode_mask = mask
             self._operator_arrival = now
             if msg.stop:
-                self._pending_stop = True
-            elif msg.reset:
-                self._pending_reset = True
+                if self.state is not P.BridgeState.STOPPED:
+                    self._enter(P.BridgeState.STOPPED, P.Fault.OPERATOR_STOP)
+            elif msg.reset and self.state in (P.BridgeState.STOPPED, P.BridgeState.DAMPING):
+                self._enter(P.BridgeState.WAITING)  # the next state starts a new stand-up
             self._cv.notify()
 
     # --- outputs ------------------------------------------------------------------------
@@ -291,43 +295,32 @@ class Bridge:
                             traceback.print_exc()
                 time.sleep(self.dt)
 
+    def _check_stale(self, now: float) -> None:
+        if (
+            self.state in (P.BridgeState.STANDUP, P.BridgeState.RUNNING)
+            and now - self._latest_arrival > self.max_state_age
+        ):
+            self._enter(P.BridgeState.DAMPING, P.Fault.STALE_STATE)
+
     def _iteration(self) -> None:
+        """The supervisor: stale-state check, damping commands, status; sleeps until the next deadline."""
         with self._cv:
-            if not self._running:
-                return
             now = time.monotonic()
-            if self._pending_stop:
-                self._pending_stop = self._pending_reset = False
-                if self.state is not P.BridgeState.STOPPED:
-                    self._enter(P.BridgeState.STOPPED, P.Fault.OPERATOR_STOP)
-            if self._pending_reset:
-                self._pending_reset = False
-                if self.state in (P.BridgeState.STOPPED, P.BridgeState.DAMPING):
-                    self._new_state = False  # the stand-up starts from a state received after the reset
-                    self._enter(P.BridgeState.WAITING)
-            active = self.state in (P.BridgeState.STANDUP, P.BridgeState.RUNNING)
-            if active and now - self._latest_arrival > self.max_state_age:
-                self._enter(P.BridgeState.DAMPING, P.Fault.STALE_STATE)
-                active = False
-            if self._new_state:
-                self._new_state = False
-                msg = self._latest
-                if self.state is P.BridgeState.WAITING or (active and self._due(msg.header.stamp_ns)):
-                    self._control_step(msg, now)
+            self._check_stale(now)
             if self.state in (P.BridgeState.DAMPING, P.BridgeState.STOPPED) and now >= self._next_damping:
                 self._send_damping()
                 self._next_damping += self.dt
                 if self._next_damping < now:
                     self._next_damping = now + self.dt
             send_status = now >= self._next_status
-            # sleep until the next absolute deadline (or a callback's notify)
-            deadlines = [self._next_status]
-            if self.state in (P.BridgeState.STANDUP, P.BridgeState.RUNNING):
-                deadlines.append(self._latest_arrival + self.max_state_age)
-            if self.state in (P.BridgeState.DAMPING, P.BridgeState.STOPPED):
-                deadlines.append(self._next_damping)
-            if not (send_status or self._new_state or self._pending_stop or self._pending_reset):
-                self._cv.wait(timeout=max(0.0, min(deadlines) - time.monotonic()))
+            if not send_status:
+                deadlines = [self._next_status]
+                if self.state in (P.BridgeState.STANDUP, P.BridgeState.RUNNING):
+                    deadlines.append(self._latest_arrival + self.max_state_age)
+                if self.state in (P.BridgeState.DAMPING, P.BridgeState.STOPPED):
+                    deadlines.append(self._next_damping)
+                if self._running:
+                    self._cv.wait(timeout=max(0.0, min(deadlines) - time.monotonic()))
         if send_status:
             self._next_status = now + self.cfg.status_period
             self.publish("status", self.status().encode())
