@@ -89,8 +89,8 @@ def standing_state(sender: P.Sender, q=None, stamp_ns: int | None = None) -> P.R
 class FakeRobot:
     """Feeds a Bridge standing states on an absolute 50 Hz clock, in a thread."""
 
-    def __init__(self, deliver, q=None):
-        self.deliver, self.q = deliver, q
+    def __init__(self, deliver, q=None, period: float = DT):
+        self.deliver, self.q, self.period = deliver, q, period
         self.sender = P.Sender()
         self.running = True
         self.paused = False
@@ -102,7 +102,7 @@ class FakeRobot:
         t0 = time.monotonic()
         k = 0
         while self.running:
-            deadline = t0 + k * DT
+            deadline = t0 + k * self.period
             time.sleep(max(0.0, deadline - time.monotonic()))
             if not self.paused:
                 self.deliver(standing_state(self.sender, self.q, int(deadline * 1e9)).encode())
@@ -293,6 +293,24 @@ def test_no_motion_before_state_then_standup_ramp(tmp_path, realtime):
     assert np.allclose(ramp[0].q, crouch + 0.1 * (b.default - crouch), atol=1e-5)  # starts at the measured pose
     assert np.allclose(ramp[-1].q, b.default, atol=1e-5)
     assert all(np.allclose(c.kp, go2.kp()) for c in ramp)
+
+
+def test_policy_steps_on_the_robot_clock_with_a_fast_state_stream(tmp_path, realtime):
+    """A Go2 publishes state at 500 Hz: the bridge answers exactly every 10th state (its
+    timestamp reaches the next 20 ms deadline), not every state, not on its own clock."""
+    rec = Recorder()
+    b = _bridge(tmp_path, rec, standup_time=0.1)
+    b.start()
+    robot = FakeRobot(b.on_state, period=0.002)
+    try:
+        assert wait_for(lambda: b.policy_steps >= 30, 3.0)
+    finally:
+        robot.stop()
+        b.stop()
+    seqs = [c.state_seq for _, c in rec.cmds]
+    assert len(seqs) >= 35 and set(np.diff(seqs)) == {10}, np.diff(seqs)
+    ts = [t for t, c in rec.cmds]
+    assert abs(np.mean(np.diff(ts)) - DT) < 0.001
 
 
 def test_targets_clipped_and_nonfinite_policy_output_never_published(tmp_path, realtime):

@@ -251,6 +251,7 @@ class Bridge:
             self.standup_step = 0
             self.last_actions[:] = 0.0
             self._enter(P.BridgeState.STANDUP)
+            self.next_stamp = msg.header.stamp_ns + int(round(self.dt * 1e9))
         if self.state is P.BridgeState.STANDUP:
             self.standup_step += 1
             n = max(1, int(round(self.cfg.standup_time / self.dt)))
