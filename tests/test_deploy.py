@@ -191,6 +191,32 @@ def test_sequence_filter_replay_reorder_restart():
         f.check(P.Header(epoch=1, seq=100))  # a replay of the old session cannot take over
 
 
+def test_zenoh_config_file_pass_through(tmp_path):
+    port = free_port()
+    f = tmp_path / "zenoh.json5"
+    f.write_text(
+        f'{{ mode: "peer", listen: {{ endpoints: ["tcp/127.0.0.1:{port}"] }},\n'
+        "  scouting: { multicast: { enabled: true } },\n"
+        "  transport: { link: { tls: { enable_mtls: true } } } }\n"
+    )
+    cfg = transport.make_config(config_file=f)
+    assert cfg.get_json("transport/link/tls/enable_mtls") == "true"  # file settings kept
+    assert cfg.get_json("scouting/multicast/enabled") == "false"  # scouting only with --multicast-scouting
+    assert cfg.get_json("mode") == '"peer"'
+    assert transport.make_config("client", config_file=f).get_json("mode") == '"client"'
+    a = zenoh.open(cfg)  # the file's endpoint is used: a second session reaches it
+    b = peer(connect=port)
+    got = []
+    try:
+        sub = a.declare_subscriber("t_cfg/x", lambda s: got.append(s.payload.to_bytes()))
+        pub = b.declare_publisher("t_cfg/x")
+        assert wait_for(lambda: (pub.put(b"hi"), bool(got))[1], 5.0, period=0.05)
+        sub.undeclare()
+    finally:
+        b.close()
+        a.close()
+
+
 # --- export reader / observation -----------------------------------------------------------
 def test_observation_matches_training_conventions(tmp_path):
     meta = load_meta(write_policy(tmp_path))

@@ -2,8 +2,9 @@
 
 Defaults are for a robot on a known network: peer mode, multicast scouting off, only
 the endpoints given on the command line. ``--zenoh-config FILE`` loads a zenoh json5
-configuration first (TLS, access control, shared memory, ...); the explicit options
-are applied on top of it only when given.
+configuration first (TLS, access control, shared memory, ...); ``--mode``,
+``--listen`` and ``--connect`` are applied on top of it when given, and multicast
+scouting stays off unless ``--multicast-scouting`` is given.
 """
 
 from __future__ import annotations
@@ -62,8 +63,9 @@ def make_config(
         cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
     if connect:
         cfg.insert_json5("connect/endpoints", json.dumps(list(connect)))
-    if config_file is None or multicast_scouting:
-        cfg.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast_scouting)))
+    # off unless asked for on the command line, whatever the file says: a robot must not
+    # discover (and start talking to) whatever else is on its network
+    cfg.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast_scouting)))
     return cfg
 
 
