@@ -102,7 +102,7 @@ def run(args: argparse.Namespace) -> dict[str, float]:
     keys = P.keys(ns)
     lock = threading.Lock()
     pub_time: dict[int, float] = {}  # state seq -> publication time (monotonic s)
-    latencies: list[float] = []
+    answered: dict[int, float] = {}  # state seq -> arrival time of the policy command computed from it
     cmd_times: list[float] = []
     statuses: list[P.BridgeStatus] = []
     measuring = threading.Event()
@@ -114,9 +114,7 @@ def run(args: argparse.Namespace) -> dict[str, float]:
         if c.mode != P.CommandMode.POLICY or not measuring.is_set():
             return
         with lock:
-            t = pub_time.pop(c.state_seq, None)
-            if t is not None:
-                latencies.append(now - t)
+            answered[c.state_seq] = now  # matched with the state's time at the end: no ordering race
             cmd_times.append(now)
 
     def on_state(sample):
@@ -188,7 +186,7 @@ def run(args: argparse.Namespace) -> dict[str, float]:
         if tmp is not None:
             tmp.cleanup()
 
-    lat = np.asarray(latencies) * 1e3
+    lat = np.asarray([t - pub_time[seq] for seq, t in answered.items() if seq in pub_time]) * 1e3
     periods = np.diff(np.asarray(cmd_times))
     jit = np.abs(periods - dt) * 1e3
     st = final_status

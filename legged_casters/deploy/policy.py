@@ -171,6 +171,9 @@ class PolicyRunner:
             opts = ort.SessionOptions()
             opts.intra_op_num_threads = 1
             opts.inter_op_num_threads = 1
+            opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+            opts.add_session_config_entry("session.intra_op.allow_spinning", "0")  # sleep, don't spin
+            opts.add_session_config_entry("session.inter_op.allow_spinning", "0")
             f = meta.directory / meta.files.get("onnx", "policy.onnx")
             self._sess = ort.InferenceSession(str(f), opts, providers=["CPUExecutionProvider"])
             inputs = [i.name for i in self._sess.get_inputs()]
