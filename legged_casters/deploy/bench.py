@@ -76,6 +76,7 @@ def run(args: argparse.Namespace) -> dict[str, float]:
             "0.5",
             "--operator-timeout",
             "0",
+            *(["--max-state-age-ms", str(args.max_state_age_ms)] if args.max_state_age_ms else []),
             *rt,
         ),
         env=env,
@@ -220,6 +221,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--duration", type=float, default=20.0, help="measured seconds")
     p.add_argument("--warmup", type=float, default=1.0, help="seconds after the stand-up before measuring")
     p.add_argument("--port", type=int, default=17800)
+    p.add_argument("--max-state-age-ms", type=float, default=None, help="passed to the bridge")
     p.add_argument("--rt-priority", type=int, default=0, help="SCHED_FIFO priority for all processes (0: off)")
     args = p.parse_args(argv)
     res = run(args)

@@ -364,9 +364,9 @@ class ZenohBridge:
         return self
 
     def stop(self) -> None:
-        self.bridge.stop()
-        for s in self.subs:
+        for s in self.subs:  # first: no callback may publish after the publishers are gone
             s.undeclare()
+        self.bridge.stop()
         for p in self.pubs.values():
             p.undeclare()
 
