@@ -290,6 +290,31 @@ def test_unknown_or_unmeasurable_obs_term_rejected_at_startup(tmp_path):
     assert r.returncode != 0 and "base_lin_vel" in r.stderr and "real Go2" in r.stderr
 
 
+def test_sim_robot_pd_uses_each_commands_gains_and_torque_limits():
+    from legged_casters.deploy.sim_robot import SimRobot
+
+    sent = []
+    r = SimRobot(lambda which, payload: sent.append((which, payload)), state_rate=500.0, watchdog=0.1)
+    s = P.Sender()
+    q_before, dq_before = r.data.qpos[r.qadr].copy(), r.data.qvel[r.dadr].copy()
+    target = q_before + 0.1
+    kp, kd = np.linspace(5.0, 30.0, 12), np.full(12, 0.5)
+    kp[2] = 2000.0  # FL calf: saturates
+    now = time.monotonic()
+    r.on_command(P.JointCommand(P.CommandMode.POLICY, target, kp, kd, 0, s.next_header()).encode())
+    r.step(now, int(now * 1e9))
+    expect = np.clip(kp * (target - q_before) - kd * dq_before, -r.tau_limit, r.tau_limit)
+    assert np.allclose(r.data.ctrl[r.act], expect, atol=1e-9)
+    assert math.isclose(r.data.actuator_force[r.act[2]], go2.TORQUE_LIMIT["calf"], rel_tol=1e-9)
+    assert r.mode is P.CommandMode.POLICY
+    st = P.RobotState.decode(next(p for w, p in sent if w == "state"))
+    assert np.allclose(st.q, q_before, atol=1e-6) and st.robot_mode == P.CommandMode.HOLD  # state before the step
+    dq_before = r.data.qvel[r.dadr].copy()
+    r.step(now + 0.15, int((now + 0.15) * 1e9))  # 150 ms without commands: watchdog -> damping
+    assert r.mode is P.CommandMode.DAMPING
+    assert np.allclose(r.data.ctrl[r.act], -1.0 * dq_before, atol=1e-9)  # kp = 0, kd = damping_kd = 1
+
+
 # --- bridge logic (no zenoh) ---------------------------------------------------------------
 def _bridge(tmp_path, rec, **kw) -> Bridge:
     policy_kw = {k: kw.pop(k) for k in ("crouch_gain", "nan_above", "bias") if k in kw}

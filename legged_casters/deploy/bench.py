@@ -7,7 +7,9 @@ and the achieved control-rate jitter, over zenoh on loopback.
 
 The bridge runs as its own process (``python -m legged_casters.deploy.bridge``) with
 the given export (default: the simple test policy, which has the same input/output
-sizes as a trained one). ``--robot synthetic``: this process plays the robot,
+sizes as a trained one) and a relaxed staleness limit (``--max-state-age-ms``,
+default 200), so that a scheduling hiccup is measured instead of ending the run.
+``--robot synthetic``: this process plays the robot,
 publishing a standing state every control period on an absolute-deadline clock and
 timing each command against the publication of the state it answers (matched by
 ``state_seq``). ``--robot sim``: the sim robot process publishes; the latency is then
@@ -76,7 +78,8 @@ def run(args: argparse.Namespace) -> dict[str, float]:
             "0.5",
             "--operator-timeout",
             "0",
-            *(["--max-state-age-ms", str(args.max_state_age_ms)] if args.max_state_age_ms else []),
+            "--max-state-age-ms",
+            str(args.max_state_age_ms),
             *rt,
         ),
         env=env,
@@ -198,6 +201,8 @@ def run(args: argparse.Namespace) -> dict[str, float]:
             f"  command interval: mean {periods.mean() * 1e3:.3f} ms (rate {1 / periods.mean():.3f} Hz), "
             f"|interval - dt|: {percentiles(jit)}"
         )
+        late = int(np.sum(periods > 1.5 * dt))
+        print(f"  command intervals > 1.5 control periods (would trip the default staleness limit): {late}")
     if st is not None:
         print(
             f"  bridge status at the end: {P.BridgeState(st.state).name} ({P.Fault(st.fault).name}), "
@@ -221,7 +226,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--duration", type=float, default=20.0, help="measured seconds")
     p.add_argument("--warmup", type=float, default=1.0, help="seconds after the stand-up before measuring")
     p.add_argument("--port", type=int, default=17800)
-    p.add_argument("--max-state-age-ms", type=float, default=None, help="passed to the bridge")
+    p.add_argument(
+        "--max-state-age-ms",
+        type=float,
+        default=200.0,
+        help="bridge staleness limit; relaxed (default 200 ms) so that one scheduling hiccup on a busy machine "
+        "does not latch the bridge in damping and end the measurement; late commands are counted instead",
+    )
     p.add_argument("--rt-priority", type=int, default=0, help="SCHED_FIFO priority for all processes (0: off)")
     args = p.parse_args(argv)
     res = run(args)
