@@ -321,7 +321,8 @@ def _bridge(tmp_path, rec, **kw) -> Bridge:
     meta = load_meta(write_policy(tmp_path, **policy_kw))
     # staleness is tested over zenoh below; here a generous limit keeps a loaded machine from tripping it
     kw.setdefault("max_state_age", 0.5)
-    cfg = BridgeConfig(standup_time=kw.pop("standup_time", 0.1), operator_timeout=0.0, **kw)
+    kw.setdefault("operator_timeout", 0.0)
+    cfg = BridgeConfig(standup_time=kw.pop("standup_time", 0.1), **kw)
     return Bridge(meta, cfg, rec)
 
 
@@ -364,11 +365,12 @@ def test_policy_steps_on_the_robot_clock_with_a_fast_state_stream(tmp_path, real
     assert abs(np.mean(np.diff(ts)) - DT) < 0.001
 
 
-def test_targets_clipped_and_nonfinite_policy_output_never_published(tmp_path, realtime):
+@pytest.mark.parametrize("backend", ["onnx", "torchscript"])
+def test_targets_clipped_and_nonfinite_policy_output_never_published(tmp_path, realtime, backend):
     rec = Recorder()
     bias = np.zeros(12)
     bias[2] = 100.0  # FL calf: default -1.5 + 0.25 * 100 is far above the joint range
-    b = _bridge(tmp_path, rec, nan_above=0.5, bias=bias, max_command=(2.0, 1.0, 1.0))
+    b = _bridge(tmp_path, rec, nan_above=0.5, bias=bias, max_command=(2.0, 1.0, 1.0), backend=backend)
     opsend = P.Sender()
     b.start()
     robot = FakeRobot(b.on_state)
@@ -388,6 +390,27 @@ def test_targets_clipped_and_nonfinite_policy_output_never_published(tmp_path, r
     assert len(after) <= n_policy + 1  # at most the one computed before the operator message landed
     assert rec.modes()[-1] == P.CommandMode.DAMPING
     assert all(np.all(np.isfinite(c.q)) for _, c in rec.cmds)  # Recorder decodes: NaN would have raised
+
+
+def test_operator_command_reaches_policy_and_times_out(tmp_path, realtime):
+    rec = Recorder()
+    b = _bridge(tmp_path, rec, crouch_gain=0.4, operator_timeout=0.3)
+    s = P.Sender()
+    b.start()
+    robot = FakeRobot(b.on_state)
+    try:
+        assert wait_for(lambda: b.state is P.BridgeState.RUNNING, 2.0)
+        b.on_operator(op(s, vx=0.5))
+        time.sleep(0.1)
+        thigh = rec.cmds[-1][1].q[THIGHS[0]]
+        assert math.isclose(thigh, go2.NOMINAL_POSE["thigh"] + 0.25 * 0.4 * 0.5, abs_tol=1e-5)
+        time.sleep(0.4)  # no operator message for longer than the timeout: zero command
+        thigh = rec.cmds[-1][1].q[THIGHS[0]]
+        assert math.isclose(thigh, go2.NOMINAL_POSE["thigh"], abs_tol=1e-5)
+        assert b.state is P.BridgeState.RUNNING
+    finally:
+        robot.stop()
+        b.stop()
 
 
 def test_stop_latches_until_reset(tmp_path, realtime):
@@ -590,7 +613,7 @@ def test_full_loop_sim_robot_and_bridge(tmp_path, realtime):
         assert wait_for(lambda: len(states) > 5, 20.0), "sim robot did not start"
         bridge = _spawn(
             "bridge", "--policy", str(policy), "--connect", f"tcp/127.0.0.1:{port}", "--namespace", ns,
-            "--standup-time", "1.0",
+            "--standup-time", "1.0", "--max-state-age-ms", "100",
         )  # fmt: skip
         assert wait_for(lambda: any(c.mode == P.CommandMode.POLICY for _, c in cmds), 20.0), "policy never ran"
         t_policy = time.monotonic()
