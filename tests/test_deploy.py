@@ -217,6 +217,21 @@ def test_zenoh_config_file_pass_through(tmp_path):
         a.close()
 
 
+def test_client_mode_reaches_a_listening_peer():
+    port = free_port()
+    a = peer(listen=port)
+    b = zenoh.open(transport.make_config("client", connect=[f"tcp/127.0.0.1:{port}"]))
+    got = []
+    try:
+        sub = a.declare_subscriber("t_client/x", lambda s: got.append(s.payload.to_bytes()))
+        pub = b.declare_publisher("t_client/x")
+        assert wait_for(lambda: (pub.put(b"hi"), bool(got))[1], 5.0, period=0.05)
+        sub.undeclare()
+    finally:
+        b.close()
+        a.close()
+
+
 # --- export reader / observation -----------------------------------------------------------
 def test_observation_matches_training_conventions(tmp_path):
     meta = load_meta(write_policy(tmp_path))
