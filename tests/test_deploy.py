@@ -428,6 +428,29 @@ def test_operator_command_reaches_policy_and_times_out(tmp_path, realtime):
         b.stop()
 
 
+def test_policy_exception_gives_damping(tmp_path, realtime, capsys):
+    rec = Recorder()
+    b = _bridge(tmp_path, rec)
+    calls = []
+
+    def broken(obs):
+        calls.append(1)
+        if len(calls) > 3:
+            raise RuntimeError("inference failed")
+        return np.zeros(12, np.float32)
+
+    b.runner = broken
+    b.start()
+    robot = FakeRobot(b.on_state)
+    try:
+        assert wait_for(lambda: b.state is P.BridgeState.DAMPING, 2.0)
+        assert b.fault is P.Fault.INTERNAL_ERROR and rec.modes()[-1] == P.CommandMode.DAMPING
+    finally:
+        robot.stop()
+        b.stop()
+    assert "inference failed" in capsys.readouterr().err
+
+
 def test_stop_latches_until_reset(tmp_path, realtime):
     rec = Recorder()
     b = _bridge(tmp_path, rec)

@@ -156,10 +156,14 @@ class Bridge:
             self._latest = msg
             self._latest_arrival = now
             # the control step runs right here, in the subscriber's thread: no hand-off latency
-            if self.state is P.BridgeState.WAITING or (
-                self.state in (P.BridgeState.STANDUP, P.BridgeState.RUNNING) and self._due(msg.header.stamp_ns)
-            ):
-                self._control_step(msg, now)
+            try:
+                if self.state is P.BridgeState.WAITING or (
+                    self.state in (P.BridgeState.STANDUP, P.BridgeState.RUNNING) and self._due(msg.header.stamp_ns)
+                ):
+                    self._control_step(msg, now)
+            except Exception:  # a bug or a failing runtime must not leave the robot on its last target
+                traceback.print_exc()
+                self._enter(P.BridgeState.DAMPING, P.Fault.INTERNAL_ERROR)
             self._cv.notify()  # new stale deadline for the supervisor
 
     def on_operator(self, payload: bytes) -> None:
