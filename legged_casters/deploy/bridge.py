@@ -41,7 +41,7 @@ import numpy as np
 
 from legged_casters.deploy import protocol as P
 from legged_casters.deploy import transport
-from legged_casters.deploy.policy import ObservationBuilder, PolicyMeta, PolicyRunner, load_meta
+from legged_casters.deploy.policy import ObservationBuilder, PolicyFormatError, PolicyMeta, PolicyRunner, load_meta
 
 
 @dataclasses.dataclass
@@ -392,7 +392,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    meta = load_meta(args.policy)  # fails here, before any zenoh traffic, on an unusable export
+    try:
+        meta = load_meta(args.policy)  # fails here, before any zenoh traffic, on an unusable export
+    except (PolicyFormatError, FileNotFoundError) as e:
+        print(f"bridge: error: {e}", file=sys.stderr)
+        return 2
     cfg = BridgeConfig(
         backend=args.backend,
         standup_time=args.standup_time,
