@@ -609,6 +609,34 @@ def _any_cmd() -> bytes:
     ).encode()
 
 
+def test_teleop_cli_sends_valid_operator_messages():
+    port = free_port()
+    a = peer(listen=port)
+    got: list[P.OperatorCommand] = []
+    key = "t_teleop/operator"
+    sub = a.declare_subscriber(key, lambda s: got.append(P.OperatorCommand.decode(s.payload.to_bytes())))
+    try:
+        args = ["--connect", f"tcp/127.0.0.1:{port}", "--namespace", "t_teleop"]
+        for extra in (["--vx", "0.4", "--propulsion", "rear_wheel", "--duration", "0.3"], ["--stop"]):
+            r = subprocess.run(
+                [sys.executable, "-m", "legged_casters.deploy.teleop", *args, *extra],
+                cwd=REPO,
+                env={**os.environ, "PYTHONPATH": str(REPO)},
+                capture_output=True,
+                text=True,
+                timeout=60,
+            )
+            assert r.returncode == 0, r.stderr
+    finally:
+        sub.undeclare()
+        a.close()
+    moving = [m for m in got if m.vx > 0]
+    assert moving and all(math.isclose(m.vx, 0.4, rel_tol=1e-6) for m in moving)
+    assert all(m.propulsion == P.PropulsionMode.REAR_WHEEL for m in moving)
+    assert got[len(moving)].vx == 0.0  # a zero command after the duration
+    assert got[-1].stop and not got[-1].reset
+
+
 # --- full loop: two processes over zenoh ---------------------------------------------------
 def _spawn(module: str, *args: str) -> subprocess.Popen:
     return subprocess.Popen(
