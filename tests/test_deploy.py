@@ -94,6 +94,8 @@ class FakeRobot:
         self.sender = P.Sender()
         self.running = True
         self.paused = False
+        self.stamp_offset = 0.0  # s added to the stamps (a robot clock jump)
+        self.frozen_stamp: int | None = None  # a robot clock that stopped
         self.last_publish = 0.0
         self.thread = threading.Thread(target=self._run, daemon=True)
         self.thread.start()
@@ -105,7 +107,8 @@ class FakeRobot:
             deadline = t0 + k * self.period
             time.sleep(max(0.0, deadline - time.monotonic()))
             if not self.paused:
-                self.deliver(standing_state(self.sender, self.q, int(deadline * 1e9)).encode())
+                stamp = int((deadline + self.stamp_offset) * 1e9) if self.frozen_stamp is None else self.frozen_stamp
+                self.deliver(standing_state(self.sender, self.q, stamp).encode())
                 self.last_publish = time.monotonic()
             k += 1
 
@@ -379,6 +382,26 @@ def test_policy_steps_on_the_robot_clock_with_a_fast_state_stream(tmp_path, real
     assert len(seqs) >= 35 and set(np.diff(seqs)) == {10}, np.diff(seqs)
     ts = [t for t, c in rec.cmds]
     assert abs(np.mean(np.diff(ts)) - DT) < 0.001
+
+
+def test_robot_clock_jump_reanchors_and_frozen_clock_gives_damping(tmp_path, realtime):
+    rec = Recorder()
+    b = _bridge(tmp_path, rec, max_state_age=0.1)
+    b.start()
+    robot = FakeRobot(b.on_state)
+    try:
+        assert wait_for(lambda: b.state is P.BridgeState.RUNNING, 2.0)
+        robot.stamp_offset = -5.0  # the robot's clock restarts 5 s back: keep stepping every state
+        n = b.policy_steps
+        time.sleep(0.3)
+        assert b.state is P.BridgeState.RUNNING and b.policy_steps >= n + 10
+        robot.frozen_stamp = int(time.monotonic() * 1e9)  # states keep coming, their clock stands still
+        t_freeze = time.monotonic()
+        assert wait_for(lambda: b.state is P.BridgeState.DAMPING, 1.0)
+        assert b.fault is P.Fault.STALE_STATE and time.monotonic() - t_freeze < 0.1 + 2 * DT + 0.05
+    finally:
+        robot.stop()
+        b.stop()
 
 
 @pytest.mark.parametrize("backend", ["onnx", "torchscript"])

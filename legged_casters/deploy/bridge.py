@@ -136,6 +136,7 @@ class Bridge:
         self.rate = RateStats(self.dt)
         self._next_damping = 0.0
         self._next_status = 0.0
+        self._last_step = 0.0
         self.transitions: list[tuple[float, P.BridgeState, P.Fault]] = []
 
     # --- inputs (called from zenoh callback threads) ----------------------------------
@@ -243,6 +244,9 @@ class Bridge:
             self.next_stamp = stamp_ns
         dt_ns = int(round(self.dt * 1e9))
         if stamp_ns < self.next_stamp - int(self.cfg.stamp_tolerance * 1e9):
+            if self.next_stamp - stamp_ns > 2 * dt_ns:  # the robot's clock jumped back (restart): re-anchor
+                self.next_stamp = stamp_ns + dt_ns
+                return True
             return False
         late = stamp_ns - self.next_stamp
         self.next_stamp = self.next_stamp + dt_ns if late < dt_ns else stamp_ns + dt_ns
@@ -250,6 +254,7 @@ class Bridge:
 
     def _control_step(self, msg: P.RobotState, now: float) -> None:
         seq = msg.header.seq
+        self._last_step = now
         if self.state is P.BridgeState.WAITING:
             self.standup_from = np.asarray(msg.q, np.float64)
             self.standup_step = 0
@@ -301,10 +306,11 @@ class Bridge:
                 time.sleep(self.dt)
 
     def _check_stale(self, now: float) -> None:
-        if (
-            self.state in (P.BridgeState.STANDUP, P.BridgeState.RUNNING)
-            and now - self._latest_arrival > self.max_state_age
-        ):
+        """No state for max_state_age, or states whose robot clock does not advance to the
+        next deadline (no control step for max_state_age + one period): damping."""
+        if self.state not in (P.BridgeState.STANDUP, P.BridgeState.RUNNING):
+            return
+        if now - self._latest_arrival > self.max_state_age or now - self._last_step > self.max_state_age + self.dt:
             self._enter(P.BridgeState.DAMPING, P.Fault.STALE_STATE)
 
     def _iteration(self) -> None:
@@ -322,6 +328,7 @@ class Bridge:
                 deadlines = [self._next_status]
                 if self.state in (P.BridgeState.STANDUP, P.BridgeState.RUNNING):
                     deadlines.append(self._latest_arrival + self.max_state_age)
+                    deadlines.append(self._last_step + self.max_state_age + self.dt)
                 if self.state in (P.BridgeState.DAMPING, P.BridgeState.STOPPED):
                     deadlines.append(self._next_damping)
                 if self._running:
