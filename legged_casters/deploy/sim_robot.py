@@ -251,7 +251,8 @@ def main(argv: list[str] | None = None) -> int:
         session.close()
     print(
         f"sim_robot: {r.steps} steps ({r.steps * r.dt:.1f} s), commands {r.commands_received}, "
-        f"rejected {r.rejected}, overruns {r.overruns}, mode {r.mode.name}, trunk height {r.trunk_height():.3f} m",
+        f"rejected {r.rejected}, overruns {r.overruns}, mode {r.mode.name}, "
+        f"trunk at ({r.data.qpos[0]:.3f}, {r.data.qpos[1]:.3f}, {r.data.qpos[2]:.3f}) m",
         flush=True,
     )
     return 0
