@@ -38,7 +38,6 @@ from legged_casters.utils.math import quat_rotate_inverse
 REPO = Path(__file__).resolve().parents[1]
 DT = 0.02
 THIGHS = [i for i, j in enumerate(go2.ACTUATED_JOINTS) if "_thigh_" in j]
-CALVES = [i for i, j in enumerate(go2.ACTUATED_JOINTS) if "_calf_" in j]
 HIPS = [go2.ACTUATED_JOINTS.index(f"{leg}_hip_joint") for leg in ("FL", "FR", "RL")]
 
 
