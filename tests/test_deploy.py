@@ -384,6 +384,30 @@ def test_policy_steps_on_the_robot_clock_with_a_fast_state_stream(tmp_path, real
     assert abs(np.mean(np.diff(ts)) - DT) < 0.001
 
 
+def test_local_clock_mode_steps_on_the_bridge_clock(tmp_path, realtime):
+    """--clock local: absolute deadlines of the bridge's own clock, newest state each time."""
+    rec = Recorder()
+    b = _bridge(tmp_path, rec, standup_time=0.1, clock="local")
+    b.start()
+    robot = FakeRobot(b.on_state, period=0.002)
+    try:
+        assert wait_for(lambda: b.policy_steps >= 40, 3.0)
+        with b._cv:
+            stale_ok = b.state is P.BridgeState.RUNNING
+            n_running = len(rec.cmds)
+        robot.paused = True  # and the staleness rule still applies
+        assert wait_for(lambda: b.state is P.BridgeState.DAMPING, 0.5)
+    finally:
+        robot.stop()
+        b.stop()
+    assert stale_ok
+    steps = [(t, c) for t, c in rec.cmds[:n_running] if c.mode in (P.CommandMode.STANDUP, P.CommandMode.POLICY)]
+    ts = np.array([t for t, _ in steps])
+    assert abs(np.mean(np.diff(ts)) - DT) < 0.001 and np.max(np.abs(np.diff(ts) - DT)) < 0.015
+    seq_steps = np.diff([c.state_seq for _, c in steps])
+    assert 9.0 <= np.mean(seq_steps) <= 11.0  # about every 10th state of a 500 Hz stream, the newest one
+
+
 def test_robot_clock_jump_reanchors_and_frozen_clock_gives_damping(tmp_path, realtime):
     rec = Recorder()
     b = _bridge(tmp_path, rec, max_state_age=0.1)

@@ -53,6 +53,7 @@ class BridgeConfig:
     operator_timeout: float = 1.0  # s without operator messages -> zero velocity command; 0: never
     max_command: tuple[float, float, float] = (1.0, 1.0, 1.5)  # |vx|, |vy|, |wz| limits
     stamp_tolerance: float = 0.001  # s
+    clock: str = "robot"  # "robot": step on the state stream's timestamps; "local": on this process's clock
     status_period: float = 0.1  # s
 
 
@@ -137,6 +138,10 @@ class Bridge:
         self._next_damping = 0.0
         self._next_status = 0.0
         self._last_step = 0.0
+        self._next_tick = 0.0  # clock == "local": the next absolute deadline
+        self._waiting_since = 0.0
+        if config.clock not in ("robot", "local"):
+            raise ValueError(f"clock must be 'robot' or 'local', got {config.clock!r}")
         self.transitions: list[tuple[float, P.BridgeState, P.Fault]] = []
 
     # --- inputs (called from zenoh callback threads) ----------------------------------
@@ -158,8 +163,9 @@ class Bridge:
             self._latest_arrival = now
             # the control step runs right here, in the subscriber's thread: no hand-off latency
             try:
-                if self.state is P.BridgeState.WAITING or (
-                    self.state in (P.BridgeState.STANDUP, P.BridgeState.RUNNING) and self._due(msg.header.stamp_ns)
+                if self.cfg.clock == "robot" and (
+                    self.state is P.BridgeState.WAITING
+                    or (self.state in (P.BridgeState.STANDUP, P.BridgeState.RUNNING) and self._due(msg.header.stamp_ns))
                 ):
                     self._control_step(msg, now)
             except Exception:  # a bug or a failing runtime must not leave the robot on its last target
@@ -235,6 +241,7 @@ class Bridge:
             self._next_damping = time.monotonic() + self.dt
             self.rate.reset()
         if state is P.BridgeState.WAITING:
+            self._waiting_since = time.monotonic()
             self.next_stamp = None
             self.rate.reset()
 
@@ -313,11 +320,31 @@ class Bridge:
         if now - self._latest_arrival > self.max_state_age or now - self._last_step > self.max_state_age + self.dt:
             self._enter(P.BridgeState.DAMPING, P.Fault.STALE_STATE)
 
+    def _local_tick(self, now: float) -> None:
+        """clock == "local": one control step per absolute deadline of this process's clock,
+        from the newest state (fresh by the staleness check)."""
+        if self.state is P.BridgeState.WAITING:
+            if self._latest is not None and self._latest_arrival > self._waiting_since:
+                self._control_step(self._latest, now)  # starts the stand-up
+                self._next_tick = now + self.dt
+            return
+        if self.state in (P.BridgeState.STANDUP, P.BridgeState.RUNNING) and now >= self._next_tick:
+            try:
+                self._control_step(self._latest, now)
+            except Exception:
+                traceback.print_exc()
+                self._enter(P.BridgeState.DAMPING, P.Fault.INTERNAL_ERROR)
+            self._next_tick += self.dt
+            if self._next_tick <= now:  # a whole period late: re-anchor instead of bursting
+                self._next_tick = now + self.dt
+
     def _iteration(self) -> None:
         """The supervisor: stale-state check, damping commands, status; sleeps until the next deadline."""
         with self._cv:
             now = time.monotonic()
             self._check_stale(now)
+            if self.cfg.clock == "local":
+                self._local_tick(now)
             if self.state in (P.BridgeState.DAMPING, P.BridgeState.STOPPED) and now >= self._next_damping:
                 self._send_damping()
                 self._next_damping += self.dt
@@ -331,6 +358,8 @@ class Bridge:
                     deadlines.append(self._last_step + self.max_state_age + self.dt)
                 if self.state in (P.BridgeState.DAMPING, P.BridgeState.STOPPED):
                     deadlines.append(self._next_damping)
+                if self.cfg.clock == "local" and self.state in (P.BridgeState.STANDUP, P.BridgeState.RUNNING):
+                    deadlines.append(self._next_tick)
                 if self._running:
                     self._cv.wait(timeout=max(0.0, min(deadlines) - time.monotonic()))
         if send_status:
@@ -392,6 +421,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--operator-timeout", type=float, default=1.0, help="s; 0 disables")
     p.add_argument("--max-command", type=float, nargs=3, default=(1.0, 1.0, 1.5), metavar=("VX", "VY", "WZ"))
     p.add_argument("--stamp-tolerance-ms", type=float, default=1.0)
+    p.add_argument(
+        "--clock",
+        choices=("robot", "local"),
+        default="robot",
+        help="robot: step on the state timestamps (lowest latency); local: on this process's clock, newest state",
+    )
     p.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0: run until Ctrl-C)")
     transport.add_zenoh_args(p)
     return p
@@ -412,6 +447,7 @@ def main(argv: list[str] | None = None) -> int:
         operator_timeout=args.operator_timeout,
         max_command=tuple(args.max_command),
         stamp_tolerance=args.stamp_tolerance_ms / 1e3,
+        clock=args.clock,
     )
     session = transport.open_session(args)
     zb = ZenohBridge(session, args.namespace, meta, cfg).start()
