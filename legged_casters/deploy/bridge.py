@@ -12,7 +12,9 @@ policy.pt). The control loop and its safety rules (docs/deploy.md has the detail
   with only transport + inference latency, and the period is the robot's, not this
   process's. A supervisor thread on the bridge's own monotonic clock sleeps to
   absolute deadlines (a condition variable, no spinning) for the state-staleness
-  limit, the damping commands while faulted and the status messages.
+  limit, the damping commands while faulted and the status messages. With
+  ``--clock local`` that thread also takes the control steps, at its own absolute
+  deadlines, from the newest state.
 * WAITING: nothing is published until a valid state has arrived.
 * STANDUP: the targets ramp from the measured pose to ``default_joint_pos`` over
   ``--standup-time`` with the export's gains; then the policy runs (RUNNING).
