@@ -1,0 +1,481 @@
+"""The policy bridge: robot state in, joint commands out, over zenoh.
+
+    python -m legged_casters.deploy.bridge --policy exported/ --listen tcp/127.0.0.1:7447
+
+Everything about the policy comes from the export (policy.yaml + policy.onnx or
+policy.pt). The control loop and its safety rules (docs/deploy.md has the details):
+
+* Clock. The robot's state stream is the steady clock: a policy step is taken on
+  the first state whose robot timestamp reaches the next absolute deadline
+  ``t0 + k * control_dt`` (within ``--stamp-tolerance-ms``), in the subscriber's
+  thread as the state arrives, so a command answers the state it was computed from
+  with only transport + inference latency, and the period is the robot's, not this
+  process's. A supervisor thread on the bridge's own monotonic clock sleeps to
+  absolute deadlines (a condition variable, no spinning) for the state-staleness
+  limit, the damping commands while faulted and the status messages. With
+  ``--clock local`` that thread also takes the control steps, at its own absolute
+  deadlines, from the newest state.
+* WAITING: nothing is published until a valid state has arrived.
+* STANDUP: the targets ramp from the measured pose to ``default_joint_pos`` over
+  ``--standup-time`` with the export's gains; then the policy runs (RUNNING).
+* State older than ``--max-state-age-ms`` (default 1.5 control periods) or a
+  non-finite policy output: DAMPING (kp = 0, kd = ``--damping-kd``), published every
+  control period, latched until an operator reset. A non-finite output is never
+  published. Targets are clipped to ``joint_pos_limits``.
+* Operator stop: STOPPED (damping), latched until a message with the reset flag;
+  reset goes back to WAITING, and the next fresh state starts a new stand-up.
+* Every received payload is decoded and checked (length, magic, version, finite
+  values, ranges, sequence order); a bad one is dropped and counted by reason in
+  the status, and never triggers a command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import dataclasses
+import sys
+import threading
+import time
+import traceback
+
+import numpy as np
+
+from legged_casters.deploy import protocol as P
+from legged_casters.deploy import transport
+from legged_casters.deploy.policy import ObservationBuilder, PolicyFormatError, PolicyMeta, PolicyRunner, load_meta
+
+
+@dataclasses.dataclass
+class BridgeConfig:
+    backend: str = "onnx"
+    standup_time: float = 2.0
+    max_state_age: float | None = None  # s; None: 1.5 control periods
+    damping_kd: float = 1.0
+    operator_timeout: float = 1.0  # s without operator messages -> zero velocity command; 0: never
+    max_command: tuple[float, float, float] = (1.0, 1.0, 1.5)  # |vx|, |vy|, |wz| limits
+    stamp_tolerance: float = 0.001  # s
+    clock: str = "robot"  # "robot": step on the state stream's timestamps; "local": on this process's clock
+    status_period: float = 0.1  # s
+
+
+class RateStats:
+    """Policy-step periods over a sliding window."""
+
+    def __init__(self, nominal: float, window: int = 1000):
+        self.nominal = nominal
+        self.periods: collections.deque[float] = collections.deque(maxlen=window)
+        self.inference: collections.deque[float] = collections.deque(maxlen=window)
+        self.last: float | None = None
+
+    def step(self, now: float) -> None:
+        if self.last is not None:
+            self.periods.append(now - self.last)
+        self.last = now
+
+    def reset(self) -> None:
+        self.last = None
+
+    def summary(self) -> dict[str, float]:
+        if not self.periods:
+            return {"rate_hz": 0.0, "period_mean_ms": 0.0, "jitter_p99_ms": 0.0, "jitter_max_ms": 0.0}
+        p = np.asarray(self.periods)
+        jit = np.abs(p - self.nominal)
+        return {
+            "rate_hz": float(1.0 / p.mean()),
+            "period_mean_ms": float(p.mean() * 1e3),
+            "jitter_p99_ms": float(np.percentile(jit, 99) * 1e3),
+            "jitter_max_ms": float(jit.max() * 1e3),
+        }
+
+
+class Bridge:
+    """State machine + control loop. `publish(key, payload)` sends a message; the zenoh
+    wiring is in `ZenohBridge`, so this class can also be driven directly."""
+
+    def __init__(self, meta: PolicyMeta, config: BridgeConfig, publish, runner=None):
+        self.meta = meta
+        self.cfg = config
+        self.publish = publish
+        self.runner = runner or PolicyRunner(meta, config.backend)
+        self.obs = ObservationBuilder(meta)
+        self.dt = meta.control_dt
+        self.max_state_age = config.max_state_age if config.max_state_age is not None else 1.5 * self.dt
+        self.default = meta.default_joint_pos.astype(np.float64)
+        self.lo, self.hi = meta.joint_pos_limits[:, 0], meta.joint_pos_limits[:, 1]
+        self.kp, self.kd = meta.kp.astype(np.float64), meta.kd.astype(np.float64)
+        self.damp_kd = np.full(12, float(config.damping_kd))
+        modes = meta.propulsion_modes
+        self.mode_masks = {m: np.asarray(modes[m.key], np.float64) for m in P.PropulsionMode if m.key in modes}
+
+        self._cv = threading.Condition()
+        self._running = False
+        self._thread: threading.Thread | None = None
+        self.state_filter = P.SequenceFilter()
+        self.operator_filter = P.SequenceFilter()
+        self.cmd_sender = P.Sender()
+        self.status_sender = P.Sender()
+
+        # shared with the callbacks (guarded by _cv)
+        self._latest: P.RobotState | None = None
+        self._latest_arrival = 0.0
+        self.commands = np.zeros(3)
+        self.mode_mask = self.mode_masks.get(P.PropulsionMode.FOUR_WHEEL, np.zeros(4))
+        self._operator_arrival = -1.0
+        self.rejected = dict.fromkeys(P.REJECT_REASONS, 0)
+        self.received_state = 0
+        self.received_operator = 0
+
+        # control-thread state
+        self.state = P.BridgeState.WAITING
+        self.fault = P.Fault.NONE
+        self.last_actions = np.zeros(12, np.float32)
+        self.next_stamp: int | None = None
+        self.standup_from: np.ndarray | None = None
+        self.standup_step = 0
+        self.policy_steps = 0
+        self.commands_sent = 0
+        self.last_cmd_seq = 0
+        self.rate = RateStats(self.dt)
+        self._next_damping = 0.0
+        self._next_status = 0.0
+        self._last_step = 0.0
+        self._next_tick = 0.0  # clock == "local": the next absolute deadline
+        self._waiting_since = 0.0
+        if config.clock not in ("robot", "local"):
+            raise ValueError(f"clock must be 'robot' or 'local', got {config.clock!r}")
+        self.transitions: list[tuple[float, P.BridgeState, P.Fault]] = []
+
+    # --- inputs (called from zenoh callback threads) ----------------------------------
+    def _reject(self, err: P.ProtocolError) -> None:
+        self.rejected[err.reason] += 1
+
+    def on_state(self, payload: bytes) -> None:
+        now = time.monotonic()
+        with self._cv:
+            try:
+                msg = P.RobotState.decode(payload)
+                self.state_filter.check(msg.header)
+            except P.ProtocolError as e:
+                self._reject(e)
+                return
+            self.received_state += 1
+            self._check_stale(now)  # a state arriving after the limit does not undo the fault
+            self._latest = msg
+            self._latest_arrival = now
+            # the control step runs right here, in the subscriber's thread: no hand-off latency
+            try:
+                if self.cfg.clock == "robot" and (
+                    self.state is P.BridgeState.WAITING
+                    or (self.state in (P.BridgeState.STANDUP, P.BridgeState.RUNNING) and self._due(msg.header.stamp_ns))
+                ):
+                    self._control_step(msg, now)
+            except Exception:  # a bug or a failing runtime must not leave the robot on its last target
+                traceback.print_exc()
+                self._enter(P.BridgeState.DAMPING, P.Fault.INTERNAL_ERROR)
+            self._cv.notify()  # new stale deadline for the supervisor
+
+    def on_operator(self, payload: bytes) -> None:
+        now = time.monotonic()
+        with self._cv:
+            try:
+                msg = P.OperatorCommand.decode(payload)
+                mask = self.mode_masks.get(P.PropulsionMode(msg.propulsion))
+                if mask is None:
+                    raise P.ProtocolError(
+                        "out_of_range", f"propulsion mode {P.PropulsionMode(msg.propulsion).key} not in the export"
+                    )
+                self.operator_filter.check(msg.header)
+            except P.ProtocolError as e:
+                self._reject(e)
+                return
+            self.received_operator += 1
+            lim = np.asarray(self.cfg.max_command)
+            self.commands = np.clip([msg.vx, msg.vy, msg.wz], -lim, lim)
+            self.mode_mask = mask
+            self._operator_arrival = now
+            if msg.stop:
+                if self.state is not P.BridgeState.STOPPED:
+                    self._enter(P.BridgeState.STOPPED, P.Fault.OPERATOR_STOP)
+            elif msg.reset and self.state in (P.BridgeState.STOPPED, P.BridgeState.DAMPING):
+                self._enter(P.BridgeState.WAITING)  # the next state starts a new stand-up
+            self._cv.notify()
+
+    # --- outputs ------------------------------------------------------------------------
+    def _send_command(self, mode: P.CommandMode, q, kp, kd, state_seq: int) -> None:
+        h = self.cmd_sender.next_header()
+        self.publish("cmd", P.JointCommand(int(mode), list(q), list(kp), list(kd), state_seq, h).encode())
+        self.commands_sent += 1
+        self.last_cmd_seq = h.seq
+
+    def _send_damping(self, state_seq: int = 0xFFFFFFFF) -> None:
+        q = self._latest.q if self._latest is not None else self.default
+        self._send_command(P.CommandMode.DAMPING, np.clip(q, self.lo, self.hi), np.zeros(12), self.damp_kd, state_seq)
+
+    def status(self) -> P.BridgeStatus:
+        with self._cv:
+            age = (time.monotonic() - self._latest_arrival) * 1e3 if self._latest is not None else 0.0
+            stats = self.rate.summary()
+            inf = float(np.mean(self.rate.inference) * 1e3) if self.rate.inference else 0.0
+            return P.BridgeStatus(
+                state=self.state,
+                fault=self.fault,
+                rejected=[self.rejected[r] for r in P.REJECT_REASONS],
+                last_state_seq=self.state_filter.last_seq if self.state_filter.last_seq >= 0 else 0,
+                last_operator_seq=self.operator_filter.last_seq if self.operator_filter.last_seq >= 0 else 0,
+                last_cmd_seq=self.last_cmd_seq,
+                received_state=self.received_state,
+                received_operator=self.received_operator,
+                commands=self.commands_sent,
+                policy_steps=self.policy_steps,
+                inference_mean_ms=inf,
+                state_age_ms=age,
+                header=self.status_sender.next_header(),
+                **stats,
+            )
+
+    # --- state machine ------------------------------------------------------------------
+    def _enter(self, state: P.BridgeState, fault: P.Fault = P.Fault.NONE) -> None:
+        self.state, self.fault = state, fault
+        self.transitions.append((time.monotonic(), state, fault))
+        if state in (P.BridgeState.DAMPING, P.BridgeState.STOPPED):
+            self._send_damping()
+            self._next_damping = time.monotonic() + self.dt
+            self.rate.reset()
+        if state is P.BridgeState.WAITING:
+            self._waiting_since = time.monotonic()
+            self.next_stamp = None
+            self.rate.reset()
+
+    def _due(self, stamp_ns: int) -> bool:
+        """Is a state with this robot timestamp the one for the next control step?"""
+        if self.next_stamp is None:
+            self.next_stamp = stamp_ns
+        dt_ns = int(round(self.dt * 1e9))
+        if stamp_ns < self.next_stamp - int(self.cfg.stamp_tolerance * 1e9):
+            if self.next_stamp - stamp_ns > 2 * dt_ns:  # the robot's clock jumped back (restart): re-anchor
+                self.next_stamp = stamp_ns + dt_ns
+                return True
+            return False
+        late = stamp_ns - self.next_stamp
+        self.next_stamp = self.next_stamp + dt_ns if late < dt_ns else stamp_ns + dt_ns
+        return True
+
+    def _control_step(self, msg: P.RobotState, now: float) -> None:
+        seq = msg.header.seq
+        self._last_step = now
+        if self.state is P.BridgeState.WAITING:
+            self.standup_from = np.asarray(msg.q, np.float64)
+            self.standup_step = 0
+            self.last_actions[:] = 0.0
+            self._enter(P.BridgeState.STANDUP)
+            self.next_stamp = msg.header.stamp_ns + int(round(self.dt * 1e9))
+        if self.state is P.BridgeState.STANDUP:
+            self.standup_step += 1
+            n = max(1, int(round(self.cfg.standup_time / self.dt)))
+            alpha = min(1.0, self.standup_step / n)
+            q = self.standup_from + alpha * (self.default - self.standup_from)
+            self._send_command(P.CommandMode.STANDUP, np.clip(q, self.lo, self.hi), self.kp, self.kd, seq)
+            self.rate.step(now)
+            if alpha >= 1.0:
+                self._enter(P.BridgeState.RUNNING)
+            return
+        # RUNNING
+        if self.cfg.operator_timeout > 0 and now - self._operator_arrival > self.cfg.operator_timeout:
+            commands = np.zeros(3)
+        else:
+            commands = self.commands
+        obs = self.obs.build(msg, commands, self.mode_mask, self.last_actions)
+        t0 = time.perf_counter()
+        actions = self.runner(obs)
+        self.rate.inference.append(time.perf_counter() - t0)
+        self.policy_steps += 1
+        if not np.all(np.isfinite(actions)):
+            self._enter(P.BridgeState.DAMPING, P.Fault.NONFINITE_ACTION)
+            return
+        clip = self.meta.clip_actions
+        actions = np.clip(actions, -clip, clip)
+        targets = np.clip(self.default + self.meta.action_scale * actions, self.lo, self.hi)
+        self._send_command(P.CommandMode.POLICY, targets, self.kp, self.kd, seq)
+        self.last_actions[:] = actions
+        self.rate.step(now)
+
+    def _loop(self) -> None:
+        while self._running:
+            try:
+                self._iteration()
+            except Exception:  # never leave the robot without commands because of a bug: damp
+                traceback.print_exc()
+                with self._cv:
+                    if self.state is not P.BridgeState.DAMPING:
+                        try:
+                            self._enter(P.BridgeState.DAMPING, P.Fault.INTERNAL_ERROR)
+                        except Exception:
+                            traceback.print_exc()
+                time.sleep(self.dt)
+
+    def _check_stale(self, now: float) -> None:
+        """No state for max_state_age, or states whose robot clock does not advance to the
+        next deadline (no control step for max_state_age + one period): damping."""
+        if self.state not in (P.BridgeState.STANDUP, P.BridgeState.RUNNING):
+            return
+        if now - self._latest_arrival > self.max_state_age or now - self._last_step > self.max_state_age + self.dt:
+            self._enter(P.BridgeState.DAMPING, P.Fault.STALE_STATE)
+
+    def _local_tick(self, now: float) -> None:
+        """clock == "local": one control step per absolute deadline of this process's clock,
+        from the newest state (fresh by the staleness check)."""
+        if self.state is P.BridgeState.WAITING:
+            if self._latest is not None and self._latest_arrival > self._waiting_since:
+                self._control_step(self._latest, now)  # starts the stand-up
+                self._next_tick = now + self.dt
+            return
+        if self.state in (P.BridgeState.STANDUP, P.BridgeState.RUNNING) and now >= self._next_tick:
+            try:
+                self._control_step(self._latest, now)
+            except Exception:
+                traceback.print_exc()
+                self._enter(P.BridgeState.DAMPING, P.Fault.INTERNAL_ERROR)
+            self._next_tick += self.dt
+            if self._next_tick <= now:  # a whole period late: re-anchor instead of bursting
+                self._next_tick = now + self.dt
+
+    def _iteration(self) -> None:
+        """The supervisor: stale-state check, damping commands, status; sleeps until the next deadline."""
+        with self._cv:
+            now = time.monotonic()
+            self._check_stale(now)
+            if self.cfg.clock == "local":
+                self._local_tick(now)
+            if self.state in (P.BridgeState.DAMPING, P.BridgeState.STOPPED) and now >= self._next_damping:
+                self._send_damping()
+                self._next_damping += self.dt
+                if self._next_damping < now:
+                    self._next_damping = now + self.dt
+            send_status = now >= self._next_status
+            if not send_status:
+                deadlines = [self._next_status]
+                if self.state in (P.BridgeState.STANDUP, P.BridgeState.RUNNING):
+                    deadlines.append(self._latest_arrival + self.max_state_age)
+                    deadlines.append(self._last_step + self.max_state_age + self.dt)
+                if self.state in (P.BridgeState.DAMPING, P.BridgeState.STOPPED):
+                    deadlines.append(self._next_damping)
+                if self.cfg.clock == "local" and self.state in (P.BridgeState.STANDUP, P.BridgeState.RUNNING):
+                    deadlines.append(self._next_tick)
+                if self._running:
+                    self._cv.wait(timeout=max(0.0, min(deadlines) - time.monotonic()))
+        if send_status:
+            self._next_status = now + self.cfg.status_period
+            self.publish("status", self.status().encode())
+
+    def start(self) -> None:
+        self._running = True
+        self._next_status = time.monotonic()
+        self._thread = threading.Thread(target=self._loop, name="bridge-control", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        with self._cv:
+            self._running = False
+            self._cv.notify()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+
+
+class ZenohBridge:
+    """A Bridge wired to a zenoh session: subscribes to state and operator, publishes cmd and status."""
+
+    def __init__(self, session, namespace: str, meta: PolicyMeta, config: BridgeConfig, runner=None):
+        self.session = session
+        self.keys = P.keys(namespace)
+        self.pubs = {
+            "cmd": transport.fast_publisher(session, self.keys["cmd"]),
+            "status": session.declare_publisher(self.keys["status"]),
+        }
+        self.bridge = Bridge(meta, config, self._publish, runner)
+        self.subs = [
+            session.declare_subscriber(self.keys["state"], lambda s: self.bridge.on_state(s.payload.to_bytes())),
+            session.declare_subscriber(self.keys["operator"], lambda s: self.bridge.on_operator(s.payload.to_bytes())),
+        ]
+
+    def _publish(self, which: str, payload: bytes) -> None:
+        self.pubs[which].put(payload)
+
+    def start(self) -> ZenohBridge:
+        self.bridge.start()
+        return self
+
+    def stop(self) -> None:
+        for s in self.subs:  # first: no callback may publish after the publishers are gone
+            s.undeclare()
+        self.bridge.stop()
+        for p in self.pubs.values():
+            p.undeclare()
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--policy", required=True, help="export directory (or its policy.yaml)")
+    p.add_argument("--backend", choices=("onnx", "torchscript"), default="onnx")
+    p.add_argument("--standup-time", type=float, default=2.0, help="stand-up ramp duration (s)")
+    p.add_argument("--max-state-age-ms", type=float, default=None, help="default: 1.5 control periods")
+    p.add_argument("--damping-kd", type=float, default=1.0)
+    p.add_argument("--operator-timeout", type=float, default=1.0, help="s; 0 disables")
+    p.add_argument("--max-command", type=float, nargs=3, default=(1.0, 1.0, 1.5), metavar=("VX", "VY", "WZ"))
+    p.add_argument("--stamp-tolerance-ms", type=float, default=1.0)
+    p.add_argument(
+        "--clock",
+        choices=("robot", "local"),
+        default="robot",
+        help="robot: step on the state timestamps (lowest latency); local: on this process's clock, newest state",
+    )
+    p.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0: run until Ctrl-C)")
+    transport.add_zenoh_args(p)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        meta = load_meta(args.policy)  # fails here, before any zenoh traffic, on an unusable export
+    except (PolicyFormatError, FileNotFoundError) as e:
+        print(f"bridge: error: {e}", file=sys.stderr)
+        return 2
+    cfg = BridgeConfig(
+        backend=args.backend,
+        standup_time=args.standup_time,
+        max_state_age=None if args.max_state_age_ms is None else args.max_state_age_ms / 1e3,
+        damping_kd=args.damping_kd,
+        operator_timeout=args.operator_timeout,
+        max_command=tuple(args.max_command),
+        stamp_tolerance=args.stamp_tolerance_ms / 1e3,
+        clock=args.clock,
+    )
+    session = transport.open_session(args)
+    zb = ZenohBridge(session, args.namespace, meta, cfg).start()
+    print(
+        f"bridge: {meta.task} ({meta.robot}), {1 / meta.control_dt:.0f} Hz, "
+        f"keys {zb.keys['state']} -> {zb.keys['cmd']}",
+        flush=True,
+    )
+    try:
+        t_end = time.monotonic() + args.duration if args.duration > 0 else float("inf")
+        while time.monotonic() < t_end:
+            time.sleep(min(0.2, max(0.0, t_end - time.monotonic())))
+    except KeyboardInterrupt:
+        pass
+    finally:
+        st = zb.bridge.status()
+        zb.stop()
+        session.close()
+    print(
+        f"bridge: state {P.BridgeState(st.state).name} ({P.Fault(st.fault).name}), "
+        f"policy steps {st.policy_steps}, commands {st.commands}, "
+        f"rate {st.rate_hz:.2f} Hz, jitter p99 {st.jitter_p99_ms:.3f} ms, rejected {st.rejected_by_reason()}",
+        flush=True,
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

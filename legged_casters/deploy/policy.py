@@ -1,0 +1,236 @@
+"""Read an exported policy (policy.yaml + policy.onnx / policy.pt) and build its observation.
+
+Only the export's files are used: no training code or config. The observation is
+built exactly as the training env builds it (``legged_casters/envs/base.py``):
+each term's raw value times its scale, concatenated in the listed order, clipped to
+``observation.clip``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from legged_casters.robot import go2
+
+FORMAT_VERSION = 1
+
+TERM_DIMS: dict[str, int] = {
+    "commands": 3,
+    "mode_mask": 4,
+    "ang_vel": 3,
+    "projected_gravity": 3,
+    "joint_pos": 12,
+    "joint_vel": 12,
+    "actions": 12,
+}
+"""Observation terms the bridge can build from robot state + operator input, with their sizes."""
+
+UNMEASURABLE: dict[str, str] = {
+    "base_lin_vel": "the trunk's linear velocity is privileged simulator state; a real Go2 does not measure it "
+    "(the go2_flat baseline observes it, so its export cannot be deployed with this bridge)",
+    "lin_vel": "the trunk's world-frame linear velocity is privileged simulator state",
+    "base_height": "the trunk height above the floor is privileged simulator state",
+}
+
+
+class PolicyFormatError(ValueError):
+    """policy.yaml does not describe a policy this bridge can run."""
+
+
+@dataclass
+class PolicyMeta:
+    directory: Path
+    task: str
+    robot: str
+    joint_names: list[str]
+    default_joint_pos: np.ndarray
+    action_scale: float
+    clip_actions: float
+    kp: np.ndarray
+    kd: np.ndarray
+    torque_limits: np.ndarray
+    joint_pos_limits: np.ndarray  # (12, 2)
+    control_dt: float
+    physics_dt: float
+    obs_dim: int
+    obs_clip: float
+    obs_terms: list[tuple[str, int, float]]
+    propulsion_modes: dict[str, list[float]]
+    files: dict[str, str]
+    onnx_input: str
+    onnx_output: str
+
+
+def _vec(d: dict, key: str, n: int) -> np.ndarray:
+    if key not in d:
+        raise PolicyFormatError(f"policy.yaml: missing {key!r}")
+    arr = np.asarray(d[key], dtype=np.float64)
+    if arr.shape != (n,) or not np.all(np.isfinite(arr)):
+        raise PolicyFormatError(f"policy.yaml: {key} must be {n} finite numbers, got {d[key]!r}")
+    return arr
+
+
+def _num(d: dict, key: str, positive: bool = True) -> float:
+    if key not in d:
+        raise PolicyFormatError(f"policy.yaml: missing {key!r}")
+    v = float(d[key])
+    if not math.isfinite(v) or (positive and v <= 0):
+        raise PolicyFormatError(f"policy.yaml: {key} must be a {'positive ' if positive else ''}number, got {v}")
+    return v
+
+
+def load_meta(path: str | Path) -> PolicyMeta:
+    """Parse and check policy.yaml (`path` is the file or the export directory)."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "policy.yaml"
+    if not path.is_file():
+        raise FileNotFoundError(f"no policy metadata at {path}")
+    d = yaml.safe_load(path.read_text())
+    if not isinstance(d, dict):
+        raise PolicyFormatError(f"{path}: not a YAML mapping")
+    if d.get("format_version") != FORMAT_VERSION:
+        raise PolicyFormatError(f"{path}: format_version {d.get('format_version')!r}, expected {FORMAT_VERSION}")
+    names = list(d.get("joint_names") or [])
+    if names != list(go2.ACTUATED_JOINTS):
+        raise PolicyFormatError(
+            f"{path}: joint_names {names} differ from the robot's joint order {list(go2.ACTUATED_JOINTS)}"
+        )
+    lims = np.asarray(d.get("joint_pos_limits"), dtype=np.float64)
+    if lims.shape != (12, 2) or not np.all(np.isfinite(lims)) or np.any(lims[:, 0] >= lims[:, 1]):
+        raise PolicyFormatError(f"{path}: joint_pos_limits must be 12 [lo, hi] pairs with lo < hi")
+    obs = d.get("observation") or {}
+    terms = []
+    for t in obs.get("terms") or []:
+        name, dim, scale = t.get("name"), int(t.get("dim", -1)), float(t.get("scale", 1.0))
+        if name in UNMEASURABLE:
+            raise PolicyFormatError(
+                f"{path}: observation term {name!r} cannot be deployed: {UNMEASURABLE[name]}. "
+                f"Known terms: {sorted(TERM_DIMS)}"
+            )
+        if name not in TERM_DIMS:
+            raise PolicyFormatError(
+                f"{path}: unknown observation term {name!r}; the bridge can build {sorted(TERM_DIMS)}"
+            )
+        if dim != TERM_DIMS[name]:
+            raise PolicyFormatError(f"{path}: term {name!r} has dim {dim}, the bridge builds {TERM_DIMS[name]}")
+        if not math.isfinite(scale):
+            raise PolicyFormatError(f"{path}: term {name!r} has scale {scale}")
+        terms.append((name, dim, scale))
+    if not terms:
+        raise PolicyFormatError(f"{path}: observation.terms is empty")
+    obs_dim = int(obs.get("dim", -1))
+    if obs_dim != sum(t[1] for t in terms):
+        raise PolicyFormatError(f"{path}: observation.dim {obs_dim} != sum of term dims {sum(t[1] for t in terms)}")
+    modes = {str(k): [float(x) for x in v] for k, v in (d.get("propulsion_modes") or {}).items()}
+    if any(len(v) != 4 for v in modes.values()):
+        raise PolicyFormatError(f"{path}: propulsion_modes masks must have 4 values")
+    if "mode_mask" in TERM_DIMS and any(t[0] == "mode_mask" for t in terms) and not modes:
+        raise PolicyFormatError(f"{path}: the policy observes mode_mask but propulsion_modes is empty")
+    onnx = d.get("onnx") or {}
+    meta = PolicyMeta(
+        directory=path.parent,
+        task=str(d.get("task", "")),
+        robot=str(d.get("robot", "caster")),
+        joint_names=names,
+        default_joint_pos=_vec(d, "default_joint_pos", 12),
+        action_scale=_num(d, "action_scale"),
+        clip_actions=_num(d, "clip_actions"),
+        kp=_vec(d, "kp", 12),
+        kd=_vec(d, "kd", 12),
+        torque_limits=_vec(d, "torque_limits", 12),
+        joint_pos_limits=lims,
+        control_dt=_num(d, "control_dt"),
+        physics_dt=_num(d, "physics_dt"),
+        obs_dim=obs_dim,
+        obs_clip=_num(obs, "clip"),
+        obs_terms=terms,
+        propulsion_modes=modes,
+        files=dict(d.get("files") or {"onnx": "policy.onnx", "torchscript": "policy.pt"}),
+        onnx_input=str(onnx.get("input", "obs")),
+        onnx_output=str(onnx.get("output", "actions")),
+    )
+    if np.any(meta.kp < 0) or np.any(meta.kd < 0):
+        raise PolicyFormatError(f"{path}: negative gains")
+    return meta
+
+
+class PolicyRunner:
+    """obs (dim,) float32 -> actions (12,) float32 through ONNX Runtime or TorchScript."""
+
+    def __init__(self, meta: PolicyMeta, backend: str = "onnx"):
+        self.backend = backend
+        if backend == "onnx":
+            import onnxruntime as ort
+
+            opts = ort.SessionOptions()
+            opts.intra_op_num_threads = 1
+            opts.inter_op_num_threads = 1
+            opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+            opts.add_session_config_entry("session.intra_op.allow_spinning", "0")  # sleep, don't spin
+            opts.add_session_config_entry("session.inter_op.allow_spinning", "0")
+            f = meta.directory / meta.files.get("onnx", "policy.onnx")
+            self._sess = ort.InferenceSession(str(f), opts, providers=["CPUExecutionProvider"])
+            inputs = [i.name for i in self._sess.get_inputs()]
+            if meta.onnx_input not in inputs:
+                raise PolicyFormatError(f"{f}: no input {meta.onnx_input!r} (has {inputs})")
+            self._in, self._out = meta.onnx_input, meta.onnx_output
+        elif backend == "torchscript":
+            import torch
+
+            torch.set_num_threads(1)
+            f = meta.directory / meta.files.get("torchscript", "policy.pt")
+            self._module = torch.jit.load(str(f), map_location="cpu").eval()
+            self._torch = torch
+        else:
+            raise ValueError(f"backend must be 'onnx' or 'torchscript', got {backend!r}")
+        out = self(np.zeros(meta.obs_dim, dtype=np.float32))
+        if out.shape != (12,):
+            raise PolicyFormatError(f"policy output has shape {out.shape}, expected (12,)")
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        x = obs.reshape(1, -1).astype(np.float32, copy=False)
+        if self.backend == "onnx":
+            return np.asarray(self._sess.run([self._out], {self._in: x})[0], dtype=np.float32).reshape(-1)
+        with self._torch.inference_mode():
+            return self._module(self._torch.from_numpy(x)).numpy().astype(np.float32).reshape(-1)
+
+
+def projected_gravity(quat_wxyz) -> np.ndarray:
+    """World gravity direction (0, 0, -1) in the frame of the unit quaternion (w, x, y, z)."""
+    w, x, y, z = (float(v) for v in quat_wxyz)
+    # third row of R^T, negated: R^T (0, 0, -1) = -(R[2, 0], R[2, 1], R[2, 2])
+    return -np.array([2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)])
+
+
+class ObservationBuilder:
+    """Actor observation from robot state, operator input and the previous action."""
+
+    def __init__(self, meta: PolicyMeta):
+        self.meta = meta
+        self._buf = np.zeros(meta.obs_dim, dtype=np.float32)
+
+    def raw_terms(self, state, commands, mode_mask, last_actions) -> dict[str, np.ndarray]:
+        return {
+            "commands": np.asarray(commands, dtype=np.float64),
+            "mode_mask": np.asarray(mode_mask, dtype=np.float64),
+            "ang_vel": np.asarray(state.gyro, dtype=np.float64),
+            "projected_gravity": projected_gravity(state.quat),
+            "joint_pos": np.asarray(state.q, dtype=np.float64) - self.meta.default_joint_pos,
+            "joint_vel": np.asarray(state.dq, dtype=np.float64),
+            "actions": np.asarray(last_actions, dtype=np.float64),
+        }
+
+    def build(self, state, commands, mode_mask, last_actions) -> np.ndarray:
+        raw = self.raw_terms(state, commands, mode_mask, last_actions)
+        i = 0
+        for name, dim, scale in self.meta.obs_terms:
+            self._buf[i : i + dim] = raw[name] * scale
+            i += dim
+        np.clip(self._buf, -self.meta.obs_clip, self.meta.obs_clip, out=self._buf)
+        return self._buf

@@ -1,0 +1,68 @@
+"""A minimal operator: publish OperatorCommands to the bridge from the command line.
+
+    python -m legged_casters.deploy.teleop --connect tcp/127.0.0.1:7447 --vx 0.3 --duration 5
+    python -m legged_casters.deploy.teleop --connect tcp/127.0.0.1:7447 --propulsion front_wheel --vx 0.3
+    python -m legged_casters.deploy.teleop --connect tcp/127.0.0.1:7447 --stop
+    python -m legged_casters.deploy.teleop --connect tcp/127.0.0.1:7447 --reset
+
+Velocity commands are repeated at ``--rate`` Hz for ``--duration`` seconds (the bridge
+zeroes the command after its operator timeout, 1 s by default), then a zero command
+is sent. ``--stop`` / ``--reset`` are sent a few times (the same flag each time, new
+sequence numbers) so that one lost sample does not matter.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+from legged_casters.deploy import protocol as P
+from legged_casters.deploy import transport
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--vx", type=float, default=0.0)
+    p.add_argument("--vy", type=float, default=0.0)
+    p.add_argument("--wz", type=float, default=0.0)
+    p.add_argument("--propulsion", choices=[m.key for m in P.PropulsionMode], default="four_wheel")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--stop", action="store_true", help="latch the bridge in damping")
+    g.add_argument("--reset", action="store_true", help="release a stop or fault (the robot stands up again)")
+    p.add_argument("--duration", type=float, default=1.0, help="seconds to repeat a velocity command")
+    p.add_argument("--rate", type=float, default=10.0)
+    transport.add_zenoh_args(p)
+    args = p.parse_args(argv)
+    session = transport.open_session(args)
+    pub = session.declare_publisher(P.keys(args.namespace)["operator"])
+    sender = P.Sender()
+    prop = P.PropulsionMode[args.propulsion.upper()]
+
+    def send(vx: float, vy: float, wz: float, flags: int = 0) -> None:
+        pub.put(P.OperatorCommand(vx, vy, wz, prop, flags, sender.next_header()).encode())
+
+    try:
+        time.sleep(0.5)  # let the session connect before the first sample
+        if args.stop or args.reset:
+            flags = P.OP_STOP if args.stop else P.OP_RESET
+            for _ in range(3):
+                send(0.0, 0.0, 0.0, flags)
+                time.sleep(0.05)
+        else:
+            t0 = time.monotonic()
+            k = 0
+            while time.monotonic() - t0 < args.duration:
+                send(args.vx, args.vy, args.wz)
+                k += 1
+                time.sleep(max(0.0, t0 + k / args.rate - time.monotonic()))
+            send(0.0, 0.0, 0.0)
+        time.sleep(0.1)
+    finally:
+        pub.undeclare()
+        session.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
