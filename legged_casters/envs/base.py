@@ -151,7 +151,7 @@ class LeggedEnv(VecEnv):
         """Named sensors' values side by side, (num_envs, total dim)."""
         cols = self._sensor_cols.get(names)
         if cols is None:
-            slices = [self.sim._sensor_slices[n] for n in names]
+            slices = [self.sim.sensor_slice(n) for n in names]
             cols = torch.tensor([i for s in slices for i in range(s.start, s.stop)], device=self.device)
             self._sensor_cols[names] = cols
         return self.sim.sensordata[:, cols].float()

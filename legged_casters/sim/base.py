@@ -154,12 +154,16 @@ class SimBackend(abc.ABC):
         """Apply force (n, 3) or force+torque (n, 6), world frame at the body's CoM, during the next `step`."""
 
     # --- helpers -------------------------------------------------------------------
-    def sensor(self, name: str) -> torch.Tensor:
-        """(num_envs, dim) slice of `sensordata` of the named sensor (a view)."""
+    def sensor_slice(self, name: str) -> slice:
+        """Columns of `sensordata` that hold the named sensor."""
         try:
-            return self.sensordata[:, self._sensor_slices[name]]
+            return self._sensor_slices[name]
         except KeyError:
             raise KeyError(f"no sensor named {name!r}; model has {sorted(self._sensor_slices)}") from None
+
+    def sensor(self, name: str) -> torch.Tensor:
+        """(num_envs, dim) slice of `sensordata` of the named sensor (a view)."""
+        return self.sensordata[:, self.sensor_slice(name)]
 
     @property
     def sensor_names(self) -> tuple[str, ...]:
