@@ -142,21 +142,22 @@ class CasterOmniEnv(LeggedEnv):
             raise ConfigError(f"modes.sample: {modes.sample} must name modes from {sorted(modes.masks)}")
 
     # --- state -------------------------------------------------------------------
-    def _init_task_buffers(self) -> None:
+    def _init_indices(self) -> None:
+        super()._init_indices()
         m = self.model
         self.swivel_qadr = torch.tensor([m.joint(j).qposadr[0] for j in go2.SWIVEL_JOINTS], device=self.device)
         self.swivel_dadr = torch.tensor([m.joint(j).dofadr[0] for j in go2.SWIVEL_JOINTS], device=self.device)
+
+    def _init_task_buffers(self) -> None:
         self.mode_names = list(self.cfg.modes.masks)
         self.mode_table = torch.tensor([self.cfg.modes.masks[n] for n in self.mode_names], device=self.device).float()
         self.sampled_modes = torch.tensor([self.mode_names.index(n) for n in self.cfg.modes.sample], device=self.device)
         self.mode_mask = torch.zeros(self.num_envs, 4, device=self.device)
         self.external_modes = False
-        self._refresh_caster_state()
 
     def _refresh_state(self) -> None:
         super()._refresh_state()
-        if hasattr(self, "swivel_qadr"):
-            self._refresh_caster_state()
+        self._refresh_caster_state()
 
     def _refresh_caster_state(self) -> None:
         qpos, qvel = self.sim.qpos, self.sim.qvel

@@ -17,8 +17,6 @@ import mujoco
 import numpy as np
 
 from legged_casters.robot.caster import (
-    CasterParams,
-    ContactParams,
     ModelParams,
     add_caster,
     add_floor,
@@ -107,6 +105,3 @@ def measure_force(
         forces.append(_wheel_ground_force(model, data, wheel))
     f = np.mean(forces, axis=0)
     return float(f[0]), float(f[1]), float(f[2])
-
-
-__all__ = ["CasterParams", "ContactParams", "build_rig", "measure_force", "propulsion_force", "RIG_LOAD"]

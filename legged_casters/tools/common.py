@@ -311,6 +311,19 @@ def command_line(argv: list[str] | None) -> str:
 
 
 # --- shared flags ---------------------------------------------------------------------------
+def add_env_set_flag(parser: argparse.ArgumentParser) -> None:
+    """--set KEY=VALUE (repeatable): an env config field by dotted name, value in YAML."""
+    parser.add_argument(
+        "--set",
+        dest="env_set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override an env config field by dotted name, value in YAML (repeatable), e.g. "
+        "--set commands.ranges.lin_vel_x=[-2,2]",
+    )
+
+
 def add_run_selection_flags(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("which checkpoint")
     g.add_argument("--task", help="registered task (default: caster_omni when registered, else the first)")

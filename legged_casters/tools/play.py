@@ -276,14 +276,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fps", type=int, default=25, help="video frames per second (real time)")
     p.add_argument("--fast_render", action="store_true", help="no shadows or reflections (~3x faster on a CPU)")
     p.add_argument("--out", help="output folder (default: <run>/play)")
-    p.add_argument(
-        "--set",
-        dest="env_set",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override an env config field (repeatable)",
-    )
+    common.add_env_set_flag(p)
     return p
 
 

@@ -93,15 +93,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--experiment_name", help="folder under the log root (default: the task's train config)")
     p.add_argument("--run_name", help="suffix of the run folder name")
     p.add_argument("--log_root", help=f"root of the run folders (default: ${common.LOG_ROOT_ENV} or <repo>/logs)")
-    p.add_argument(
-        "--set",
-        dest="env_set",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override an env config field by dotted name, value in YAML (repeatable), e.g. "
-        "--set commands.ranges.lin_vel_x=[-2,2]",
-    )
+    common.add_env_set_flag(p)
     p.add_argument(
         "--train-set",
         "--train_set",
