@@ -42,10 +42,11 @@ class TrainCfg:
     policy: PolicyCfg = field(default_factory=PolicyCfg)
     algorithm: PPOCfg = field(default_factory=PPOCfg)
 
-    def to_rsl_rl(self) -> dict:
-        """The dict OnPolicyRunner expects: actor on "policy", critic on "policy" + "critic"."""
+    def to_rsl_rl(self, actor_prior: dict | None = None) -> dict:
+        """The dict OnPolicyRunner expects: actor on "policy", critic on "policy" + "critic".
+        `actor_prior` (from env.actor_prior()): the actor adds that trajectory prior to its mean."""
         p = self.policy
-        return {
+        cfg = {
             "num_steps_per_env": self.num_steps_per_env,
             "save_interval": self.save_interval,
             "check_for_nan": True,
@@ -68,3 +69,7 @@ class TrainCfg:
             },
             "algorithm": {"class_name": "rsl_rl.algorithms.PPO", **vars(self.algorithm)},
         }
+        if actor_prior is not None:
+            cfg["actor"]["class_name"] = "legged_casters.models.PriorMLPModel"
+            cfg["actor"]["prior"] = actor_prior
+        return cfg

@@ -18,6 +18,7 @@ import time
 import torch
 
 from legged_casters import registry
+from legged_casters.envs.base import set_timestep
 from legged_casters.robot.build import MODEL_FILES
 from legged_casters.sim.base import physics_model
 
@@ -56,6 +57,8 @@ def main(argv: list[str] | None = None) -> int:
     for task in args.tasks.split(","):
         spec = registry.get_task(task)
         model = physics_model(MODEL_FILES[spec.env_cfg.robot])
+        if spec.env_cfg.sim.timestep is not None:  # the task's physics step (caster_omni: 5 ms)
+            set_timestep(model, spec.env_cfg.sim.timestep)
         decimation = spec.env_cfg.sim.decimation
         for backend in args.backends.split(","):
             for n in sizes:

@@ -16,11 +16,14 @@ import matplotlib.pyplot as plt  # noqa: E402
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator  # noqa: E402
 
 TAGS = (
-    ("Train/mean_reward", "mean episode return"),
+    ("Train/mean_reward", "mean episode return (mean + noise)"),
     ("Train/mean_episode_length", "mean episode length (steps)"),
     ("Episode_Reward/tracking_lin_vel", "linear-velocity tracking reward (per s)"),
-    ("Episode_Reward/tracking_ang_vel", "yaw-rate tracking reward (per s)"),
+    ("Eval/vx_error", "deterministic |vx error| (m/s)"),
+    ("Eval/vy_error", "deterministic |vy error| (m/s)"),
+    ("Eval/wz_error", "deterministic |wz error| (rad/s)"),
 )
+"""Panels; a run without a tag (older runs have no Eval/) leaves that panel to the others."""
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -29,7 +32,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=Path("docs/training_curves.png"))
     p.add_argument("--window", type=int, default=10, help="iterations averaged for the start/end values")
     args = p.parse_args(argv)
-    fig, axes = plt.subplots(1, len(TAGS), figsize=(4.2 * len(TAGS), 3.6))
+    fig, axes = plt.subplots(2, (len(TAGS) + 1) // 2, figsize=(4.2 * ((len(TAGS) + 1) // 2), 7.2))
+    axes = axes.flatten()
     for run in args.runs:
         if not run.is_dir():
             print(f"no run folder {run}", file=sys.stderr)
@@ -42,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             events = acc.Scalars(tag)
             steps, values = [e.step for e in events], [e.value for e in events]
-            ax.plot(steps, values, label=run.parent.name)
+            ax.plot(steps, values, label=f"{run.parent.name}/{run.name.split('_', 2)[-1]}")
             ax.set_title(title, fontsize=10)
             ax.set_xlabel("iteration")
             ax.grid(alpha=0.3)

@@ -1,4 +1,4 @@
-"""caster_omni: observation layout, Table I terms on hand-made states, propulsion
+"""caster_omni_paper (Table I as written): observation layout, Table I terms on hand-made states, propulsion
 modes, randomisation on both backends, and PPO plumbing."""
 
 import copy
@@ -17,7 +17,7 @@ CPU = ["sim.backend=cpu"]
 
 @pytest.fixture(scope="module")
 def env():
-    e = registry.make_env("caster_omni", CPU, num_envs=4)
+    e = registry.make_env("caster_omni_paper", CPU, num_envs=4)
     yield e
     e.close()
 
@@ -111,7 +111,7 @@ def test_table_one_weights_and_sign_decisions(env):
 
 
 def test_modes_reach_the_observation_and_switch_mid_episode():
-    e = registry.make_env("caster_omni", CPU, num_envs=2)
+    e = registry.make_env("caster_omni_paper", CPU, num_envs=2)
     sl = _slice(e, "policy", "mode_mask")
     e.set_mode("front_wheel")
     obs, *_ = e.step(torch.zeros(2, 12))
@@ -128,7 +128,7 @@ def test_modes_reach_the_observation_and_switch_mid_episode():
 
 def test_modes_switch_on_their_own_during_training():
     e = registry.make_env(
-        "caster_omni", CPU + ["modes.switch_probability=1.0", "commands.resampling_time=0.04"], num_envs=8
+        "caster_omni_paper", CPU + ["modes.switch_probability=1.0", "commands.resampling_time=0.04"], num_envs=8
     )
     seen = set()
     for _ in range(30):
@@ -139,18 +139,18 @@ def test_modes_switch_on_their_own_during_training():
 
 def test_any_non_empty_subset_of_oscillating_casters_is_configurable():
     e = registry.make_env(
-        "caster_omni", CPU + ["modes.masks={'fl_only': [0, 1, 1, 1]}", "modes.sample=['fl_only']"], num_envs=2
+        "caster_omni_paper", CPU + ["modes.masks={'fl_only': [0, 1, 1, 1]}", "modes.sample=['fl_only']"], num_envs=2
     )
     assert torch.equal(e.mode_mask, torch.tensor([[0.0, 1, 1, 1]] * 2))
     with pytest.raises(ConfigError, match="at least one caster must oscillate"):
-        registry.make_env("caster_omni", CPU + ["modes.masks={'none': [1, 1, 1, 1]}", "modes.sample=['none']"])
+        registry.make_env("caster_omni_paper", CPU + ["modes.masks={'none': [1, 1, 1, 1]}", "modes.sample=['none']"])
     with pytest.raises(ConfigError, match="must name modes"):
-        registry.make_env("caster_omni", CPU + ["modes.sample=['warp_drive']"], num_envs=2)
+        registry.make_env("caster_omni_paper", CPU + ["modes.sample=['warp_drive']"], num_envs=2)
 
 
 @pytest.mark.parametrize("backend", ["cpu", "warp"])
 def test_paper_randomisation_lands_in_each_backend(backend):
-    e = registry.make_env("caster_omni", [f"sim.backend={backend}", "sim.device=cpu"], num_envs=3)
+    e = registry.make_env("caster_omni_paper", [f"sim.backend={backend}", "sim.device=cpu"], num_envs=3)
     damping = e.sim.get_model_field("dof_damping")
     swivel = [e.model.joint(j).dofadr[0] for j in go2.SWIVEL_JOINTS]
     assert damping[:, swivel].min() >= 0.01 - 1e-7 and damping[:, swivel].max() <= 0.1 + 1e-7
@@ -168,8 +168,8 @@ def test_paper_randomisation_lands_in_each_backend(backend):
 
 
 def test_two_iterations_of_rsl_rl_ppo_with_the_asymmetric_critic(tmp_path):
-    e = registry.make_env("caster_omni", CPU, num_envs=4)
-    cfg = registry.get_task("caster_omni").train_cfg.to_rsl_rl()
+    e = registry.make_env("caster_omni_paper", CPU, num_envs=4)
+    cfg = registry.get_task("caster_omni_paper").train_cfg.to_rsl_rl()
     cfg["num_steps_per_env"] = 8
     runner = OnPolicyRunner(e, copy.deepcopy(cfg), log_dir=str(tmp_path), device="cpu")
     assert runner.alg.actor.obs_dim == 49 and runner.alg.critic.obs_dim == 49 + 23
@@ -178,7 +178,7 @@ def test_two_iterations_of_rsl_rl_ppo_with_the_asymmetric_critic(tmp_path):
 
 
 def test_long_random_rollout_stays_finite():
-    e = registry.make_env("caster_omni", CPU + ["domain_rand.push_interval_s=0.5"], num_envs=16)
+    e = registry.make_env("caster_omni_paper", CPU + ["domain_rand.push_interval_s=0.5"], num_envs=16)
     torch.manual_seed(2)
     for _ in range(300):
         obs, rew, dones, extras = e.step(torch.randn(e.num_envs, e.num_actions))

@@ -100,6 +100,15 @@ def test_run_folder_holds_checkpoints_configs_git_state_and_events(run):
     # One progress line per iteration, with throughput and ETA.
     lines = [line for line in out1.splitlines() if line.startswith(f"[{TASK}] it ")]
     assert len(lines) == 2 and "steps/s" in lines[0] and "ETA" in lines[0] and "mean reward" in lines[0]
+    # The deterministic evaluation runs on the first and the last iteration (and every 25th).
+    assert all("eval |err| vx" in line and "falls" in line for line in lines)
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(run_dir), size_guidance={"scalars": 0})
+    events.Reload()
+    tags = set(events.Tags()["scalars"])
+    assert {"Eval/vx_error", "Eval/vy_error", "Eval/wz_error", "Eval/falls", "Eval/time_share"} <= tags
+    assert {f"Noise/std_{j}" for j in go2.ACTUATED_JOINTS} <= tags
 
 
 def test_checkpoints_load_weights_only_and_carry_env_state(run):
@@ -191,7 +200,8 @@ def exported(run, tmp_path_factory):
 
 def test_export_writes_single_file_onnx_torchscript_and_the_deployment_yaml(exported):
     out, log = exported
-    assert sorted(p.name for p in out.iterdir()) == ["policy.onnx", "policy.pt", "policy.yaml"]
+    names = sorted(p.name for p in out.iterdir())
+    assert names == ["env.yaml", "policy.onnx", "policy.pt", "policy.yaml", "train.yaml"]
     meta = yaml.safe_load((out / "policy.yaml").read_text())
     assert list(meta) == SCHEMA_KEYS
     assert meta["format_version"] == 1 and meta["task"] == TASK and meta["robot"] == "point"
@@ -385,8 +395,8 @@ needs_caster = pytest.mark.skipif(CASTER not in registry.list_tasks(), reason="c
 
 @needs_caster
 def test_caster_task_metadata_lists_its_modes_and_observation_layout():
-    env = registry.make_env(CASTER, ["sim.backend=cpu"], num_envs=1)
-    meta = export.policy_metadata(env, CASTER)
+    env = registry.make_env("caster_omni_paper", ["sim.backend=cpu"], num_envs=1)
+    meta = export.policy_metadata(env, "caster_omni_paper")
     env.close()
     assert meta["robot"] == "caster"
     terms = [(t["name"], t["dim"]) for t in meta["observation"]["terms"]]

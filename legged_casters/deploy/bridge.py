@@ -38,6 +38,7 @@ import sys
 import threading
 import time
 import traceback
+from pathlib import Path
 
 import numpy as np
 
@@ -130,6 +131,7 @@ class Bridge:
         self.state = P.BridgeState.WAITING
         self.fault = P.Fault.NONE
         self.last_actions = np.zeros(12, np.float32)
+        self.running_steps = 0
         self.next_stamp: int | None = None
         self.standup_from: np.ndarray | None = None
         self.standup_step = 0
@@ -279,13 +281,15 @@ class Bridge:
             self.rate.step(now)
             if alpha >= 1.0:
                 self._enter(P.BridgeState.RUNNING)
+                self.running_steps = 0  # the policy's gait clock starts with the policy
             return
         # RUNNING
         if self.cfg.operator_timeout > 0 and now - self._operator_arrival > self.cfg.operator_timeout:
             commands = np.zeros(3)
         else:
             commands = self.commands
-        obs = self.obs.build(msg, commands, self.mode_mask, self.last_actions)
+        obs = self.obs.build(msg, commands, self.mode_mask, self.last_actions, self.running_steps)
+        self.running_steps += 1
         t0 = time.perf_counter()
         actions = self.runner(obs)
         self.rate.inference.append(time.perf_counter() - t0)
@@ -413,9 +417,16 @@ class ZenohBridge:
             p.undeclare()
 
 
+SHIPPED_POLICY = Path(__file__).resolve().parents[2] / "resources" / "policies" / "caster_omni"
+"""The trained caster_omni policy the project ships (the default --policy)."""
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--policy", required=True, help="export directory (or its policy.yaml)")
+    p.add_argument(
+        "--policy",
+        help="export directory (or its policy.yaml); default: the shipped resources/policies/caster_omni/",
+    )
     p.add_argument("--backend", choices=("onnx", "torchscript"), default="onnx")
     p.add_argument("--standup-time", type=float, default=2.0, help="stand-up ramp duration (s)")
     p.add_argument("--max-state-age-ms", type=float, default=None, help="default: 1.5 control periods")
@@ -436,6 +447,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.policy is None:
+        args.policy = str(SHIPPED_POLICY)
+        print(f"bridge: no --policy given: using the shipped policy {args.policy}")
     try:
         meta = load_meta(args.policy)  # fails here, before any zenoh traffic, on an unusable export
     except (PolicyFormatError, FileNotFoundError) as e:

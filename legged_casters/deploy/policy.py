@@ -27,8 +27,11 @@ TERM_DIMS: dict[str, int] = {
     "joint_pos": 12,
     "joint_vel": 12,
     "actions": 12,
+    "gait_phase": 2,
 }
 """Observation terms the bridge can build from robot state + operator input, with their sizes."""
+HISTORY_TERM = "proprio_history"
+"""A stack of earlier steps' terms (policy.yaml `history`: length, terms, newest first)."""
 
 UNMEASURABLE: dict[str, str] = {
     "base_lin_vel": "the trunk's linear velocity is privileged simulator state; a real Go2 does not measure it "
@@ -64,6 +67,10 @@ class PolicyMeta:
     files: dict[str, str]
     onnx_input: str
     onnx_output: str
+    history_length: int = 0
+    history_terms: tuple[str, ...] = ()
+    gait_frequency: float = 0.0
+    """Hz of the clock behind the gait_phase term (policy.yaml gait_clock.frequency); 0: none."""
 
 
 def _vec(d: dict, key: str, n: int) -> np.ndarray:
@@ -113,9 +120,12 @@ def load_meta(path: str | Path) -> PolicyMeta:
                 f"{path}: observation term {name!r} cannot be deployed: {UNMEASURABLE[name]}. "
                 f"Known terms: {sorted(TERM_DIMS)}"
             )
+        if name == HISTORY_TERM:
+            terms.append((name, dim, scale))
+            continue
         if name not in TERM_DIMS:
             raise PolicyFormatError(
-                f"{path}: unknown observation term {name!r}; the bridge can build {sorted(TERM_DIMS)}"
+                f"{path}: unknown observation term {name!r}; the bridge can build {sorted([*TERM_DIMS, HISTORY_TERM])}"
             )
         if dim != TERM_DIMS[name]:
             raise PolicyFormatError(f"{path}: term {name!r} has dim {dim}, the bridge builds {TERM_DIMS[name]}")
@@ -132,6 +142,34 @@ def load_meta(path: str | Path) -> PolicyMeta:
         raise PolicyFormatError(f"{path}: propulsion_modes masks must have 4 values")
     if "mode_mask" in TERM_DIMS and any(t[0] == "mode_mask" for t in terms) and not modes:
         raise PolicyFormatError(f"{path}: the policy observes mode_mask but propulsion_modes is empty")
+    hist = d.get("history") or {}
+    history_length, history_terms = 0, ()
+    if any(t[0] == HISTORY_TERM for t in terms):
+        try:
+            history_terms = tuple(str(t) for t in (hist.get("terms") or ())) if isinstance(hist, dict) else ()
+            history_length = int(hist.get("length", 0)) if isinstance(hist, dict) else 0
+        except (TypeError, ValueError):
+            history_terms, history_length = (), 0
+        scaled = {t[0] for t in terms}
+        bad = [t for t in history_terms if t not in TERM_DIMS or t not in scaled]
+        if history_length < 1 or not history_terms or bad:
+            raise PolicyFormatError(
+                f"{path}: the policy observes {HISTORY_TERM} but `history` does not say how to build it "
+                f"(length >= 1 and terms that the policy also observes directly; got {hist!r})"
+            )
+        want = history_length * sum(TERM_DIMS[t] for t in history_terms)
+        got = next(t[1] for t in terms if t[0] == HISTORY_TERM)
+        if got != want:
+            raise PolicyFormatError(f"{path}: {HISTORY_TERM} has dim {got}, its history description gives {want}")
+    clock = d.get("gait_clock") or {}
+    try:
+        gait_frequency = float(clock.get("frequency", 0.0)) if isinstance(clock, dict) else math.nan
+    except (TypeError, ValueError):
+        gait_frequency = math.nan
+    if any(t[0] == "gait_phase" for t in terms) and not (math.isfinite(gait_frequency) and gait_frequency > 0):
+        raise PolicyFormatError(
+            f"{path}: the policy observes gait_phase but gait_clock.frequency is not a positive number"
+        )
     onnx = d.get("onnx") or {}
     meta = PolicyMeta(
         directory=path.parent,
@@ -154,6 +192,9 @@ def load_meta(path: str | Path) -> PolicyMeta:
         files=dict(d.get("files") or {"onnx": "policy.onnx", "torchscript": "policy.pt"}),
         onnx_input=str(onnx.get("input", "obs")),
         onnx_output=str(onnx.get("output", "actions")),
+        gait_frequency=gait_frequency if math.isfinite(gait_frequency) else 0.0,
+        history_length=history_length,
+        history_terms=history_terms,
     )
     if np.any(meta.kp < 0) or np.any(meta.kd < 0):
         raise PolicyFormatError(f"{path}: negative gains")
@@ -214,9 +255,17 @@ class ObservationBuilder:
     def __init__(self, meta: PolicyMeta):
         self.meta = meta
         self._buf = np.zeros(meta.obs_dim, dtype=np.float32)
+        scales = {name: scale for name, _, scale in meta.obs_terms}
+        self._hist_scales = [(t, scales.get(t, 1.0)) for t in meta.history_terms]
+        width = sum(TERM_DIMS[t] for t in meta.history_terms)
+        self._history = np.zeros((meta.history_length, width), dtype=np.float64)
 
-    def raw_terms(self, state, commands, mode_mask, last_actions) -> dict[str, np.ndarray]:
+    def raw_terms(self, state, commands, mode_mask, last_actions, step: int = 0) -> dict[str, np.ndarray]:
+        """`step`: policy steps since the policy started (the gait clock: phase 2 pi f step dt,
+        as in training, where it starts at 0 with every episode)."""
+        phase = 2.0 * math.pi * self.meta.gait_frequency * step * self.meta.control_dt
         return {
+            "gait_phase": np.array([math.sin(phase), math.cos(phase)]),
             "commands": np.asarray(commands, dtype=np.float64),
             "mode_mask": np.asarray(mode_mask, dtype=np.float64),
             "ang_vel": np.asarray(state.gyro, dtype=np.float64),
@@ -226,11 +275,20 @@ class ObservationBuilder:
             "actions": np.asarray(last_actions, dtype=np.float64),
         }
 
-    def build(self, state, commands, mode_mask, last_actions) -> np.ndarray:
-        raw = self.raw_terms(state, commands, mode_mask, last_actions)
+    def build(self, state, commands, mode_mask, last_actions, step: int = 0) -> np.ndarray:
+        """The observation of policy step `step` (0: the policy's first; it also clears
+        the history, as an episode start does in training)."""
+        raw = self.raw_terms(state, commands, mode_mask, last_actions, step)
+        if step == 0:
+            self._history[:] = 0.0
+        raw[HISTORY_TERM] = self._history.reshape(-1)
         i = 0
         for name, dim, scale in self.meta.obs_terms:
             self._buf[i : i + dim] = raw[name] * scale
             i += dim
+        if self.meta.history_length:
+            now = np.concatenate([raw[t] * s for t, s in self._hist_scales])
+            self._history[1:] = self._history[:-1]
+            self._history[0] = now
         np.clip(self._buf, -self.meta.obs_clip, self.meta.obs_clip, out=self._buf)
         return self._buf

@@ -40,6 +40,13 @@ def _uniform(lo: float, hi: float, shape, device) -> torch.Tensor:
     return torch.rand(shape, device=device) * (hi - lo) + lo
 
 
+def set_timestep(model: mujoco.MjModel, timestep: float) -> None:
+    """Change a model's physics step in place, raising every geom's solref time constant
+    to at least 2 x timestep (what MuJoCo would do silently, made explicit)."""
+    model.opt.timestep = timestep
+    model.geom_solref[:, 0] = np.maximum(model.geom_solref[:, 0], 2.0 * timestep)
+
+
 class LeggedEnv(VecEnv):
     OBSERVATIONS: dict[str, tuple[str, ...]] = {"policy": (), "critic": ()}
     """Observation group -> term names, in order. The one place the layout is written."""
@@ -58,6 +65,8 @@ class LeggedEnv(VecEnv):
         self.device = torch.device(device)
         num_envs = cfg.num_envs or (GPU_DEFAULT_NUM_ENVS if self.backend_kind == "warp" else CPU_DEFAULT_NUM_ENVS)
         self.model = physics_model(build.MODEL_FILES[cfg.robot])
+        if cfg.sim.timestep is not None:
+            set_timestep(self.model, cfg.sim.timestep)
         self.sim = make_backend(self.backend_kind, self.model, num_envs, cfg.sim.decimation, self.device)
         self.num_envs = num_envs
         self.num_actions = len(go2.ACTUATED_JOINTS)
@@ -128,7 +137,7 @@ class LeggedEnv(VecEnv):
     def _init_observation_layout(self) -> None:
         scales = self.cfg.observations.scales
         self.obs_layout: dict[str, list[tuple[str, int, float]]] = {}
-        for group, terms in self.OBSERVATIONS.items():
+        for group, terms in self.observation_terms().items():
             layout = []
             for term in terms:
                 fn = getattr(self, f"_obs_{term}", None)
@@ -142,6 +151,16 @@ class LeggedEnv(VecEnv):
             noise.append(torch.full((dim,), amp if self.cfg.noise.enabled else 0.0))
         self.noise_vec = torch.cat(noise).to(self.device) if noise else torch.zeros(0, device=self.device)
         self.obs_buf = self.compute_observations()
+        self._after_observations()
+
+    def observation_terms(self) -> dict[str, tuple[str, ...]]:
+        """Observation group -> term names for this env's config (default: OBSERVATIONS)."""
+        return dict(self.OBSERVATIONS)
+
+    def actor_prior(self) -> dict | None:
+        """Keyword arguments of a trajectory prior inside the actor (legged_casters.models),
+        or None: the actor is a plain MLP."""
+        return None
 
     def observation_dims(self) -> dict[str, int]:
         return {group: sum(dim for _, dim, _ in layout) for group, layout in self.obs_layout.items()}
@@ -218,10 +237,14 @@ class LeggedEnv(VecEnv):
             self.reset_idx(env_ids)
         self._advance_curriculum()
         self.obs_buf = self.compute_observations()
+        self._after_observations()
         self.last_actions[:] = self.actions
         self.last_joint_vel[:] = self.joint_vel
         self.extras["time_outs"] = self.time_out_buf.clone()
         return self.obs_buf, self.rew_buf.clone(), self.reset_buf.clone(), self.extras
+
+    def _after_observations(self) -> None:
+        """Task hook: after each step's observation (e.g. to record a history)."""
 
     def _init_task_buffers(self) -> None:
         """Task hook: allocate the task's own per-env state (before the first reset)."""
@@ -247,6 +270,11 @@ class LeggedEnv(VecEnv):
         for col, key in enumerate(("lin_vel_x", "lin_vel_y", "ang_vel_yaw")):
             lo, hi = self.command_ranges[key]
             self.commands[env_ids, col] = _uniform(lo, hi, (n,), self.device)
+        single = torch.rand(n, device=self.device) < self.cfg.commands.single_axis_fraction
+        if single.any():
+            keep = torch.randint(3, (int(single.sum()),), device=self.device)
+            mask = torch.nn.functional.one_hot(keep, 3).to(self.commands.dtype)
+            self.commands[env_ids[single]] *= mask
         standing = torch.rand(n, device=self.device) < self.cfg.commands.standing_fraction
         self.commands[env_ids[standing]] = 0.0
 
@@ -340,6 +368,7 @@ class LeggedEnv(VecEnv):
     def reset(self) -> TensorDict:
         self.reset_idx(torch.arange(self.num_envs, device=self.device))
         self.obs_buf = self.compute_observations()
+        self._after_observations()
         return self.obs_buf
 
     def _log_episodes(self, env_ids: torch.Tensor) -> None:

@@ -11,8 +11,11 @@ class SimCfg:
     backend: Literal["auto", "cpu", "warp"] = "auto"
     """auto: MuJoCo Warp when CUDA is available, else MuJoCo C (rollout thread pool)."""
     decimation: int = field(default=10, metadata={"min": 1})
-    """Physics steps per policy step: dt 2 ms x 10 = 50 Hz policy. dt stays 2 ms (the
-    model's timestep): a larger dt silently softens the stiff caster contact."""
+    """Physics steps per policy step: dt 2 ms x 10 = 50 Hz policy."""
+    timestep: float | None = field(default=None, metadata={"min": 1e-4, "max": 0.01})
+    """Physics step (s); None keeps the model's (2 ms). MuJoCo raises a contact's solref
+    time constant to at least 2 x timestep; the env sets it so explicitly. 5 ms with
+    solref 0.01 was measured safe for the caster contact (docs/caster_physics.md)."""
     device: str = "auto"
     """Torch device of the env tensors; auto: cuda:0 for Warp on CUDA, else cpu."""
 
@@ -36,6 +39,9 @@ class CommandsCfg:
     resampling_time: float = field(default=10.0, metadata={"min": 0.02})
     standing_fraction: float = field(default=0.1, metadata={"min": 0.0, "max": 1.0})
     """Fraction of resampled commands that are exactly zero (stand still)."""
+    single_axis_fraction: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})
+    """Fraction of resampled commands that keep only one of vx, vy, wz (drawn uniformly),
+    so that pure sideways motion and turning on the spot are trained, not only mixtures."""
     ranges: CommandRanges = field(default_factory=CommandRanges)
     curriculum: bool = False
     """Widen lin_vel_x towards `max_lin_vel_x` while tracking is good."""

@@ -244,6 +244,15 @@ def load_checkpoint(path: str | Path, map_location: str = "cpu") -> dict:
 
 
 # --- configs of a run ------------------------------------------------------------------------
+SHIPPED_POLICIES = Path(__file__).resolve().parents[2] / "resources" / "policies"
+
+
+def shipped_policy_dir(task: str) -> Path | None:
+    """resources/policies/<task>/ when the project ships a trained policy for the task."""
+    d = SHIPPED_POLICIES / task
+    return d if (d / "policy.pt").is_file() else None
+
+
 def run_configs(spec: registry.TaskSpec, run_dir: Path | None) -> tuple[Any, Any]:
     """The env and train configs a run was trained with (its env.yaml / train.yaml), or the
     task's defaults where the run has none."""

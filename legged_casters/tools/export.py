@@ -3,11 +3,16 @@
     python export.py --task go2_flat                   # newest run of the task
     python export.py --load_run <run> --checkpoint 300 --out exported/
 
-Writes <out>/policy.pt (TorchScript), <out>/policy.onnx (one file, dynamic batch axis)
-and <out>/policy.yaml. Both networks are the actor's observation normaliser followed by
-its MLP and the distribution's mean: obs (batch, dim) -> actions (batch, 12),
-deterministic. policy.yaml (also in the ONNX metadata_props, key "policy.yaml") is the
-one description the robot side reads: joints, gains, periods and the observation layout.
+Both networks are the actor's observation normaliser, its MLP, the distribution's mean
+and, for a task with a gait prior (caster_omni), the prior added to that mean, all
+computed from the one observation vector: obs (batch, dim) -> actions (batch, 12).
+
+Writes <out>/policy.pt (TorchScript), <out>/policy.onnx (one file, dynamic batch axis),
+<out>/policy.yaml, and the run's env.yaml / train.yaml (so that play.py and
+scripts/evaluate.py rebuild the task the policy was trained on from the folder alone).
+The networks are deterministic. policy.yaml (also in the ONNX metadata_props, key
+"policy.yaml") is the one description the robot side reads: joints, gains, periods,
+the observation layout, and for caster_omni the gait clock and the history.
 """
 
 from __future__ import annotations
@@ -40,7 +45,7 @@ ONNX_INPUT, ONNX_OUTPUT = "obs", "actions"
 
 
 class DeployedPolicy(nn.Module):
-    """Observation normaliser + actor MLP + deterministic head, for TorchScript and ONNX.
+    """Observation normaliser + actor MLP (+ gait prior) + deterministic head, for TorchScript and ONNX.
 
     Computes exactly what rsl_rl's MLPModel computes in its deterministic forward on
     the concatenated policy observation: ((obs - mean) / (std + eps)) -> MLP -> mean.
@@ -61,14 +66,18 @@ class DeployedPolicy(nn.Module):
         dist = getattr(actor, "distribution", None)
         self.head = dist.as_deterministic_output_module() if dist is not None else nn.Identity()
         self.obs_dim = dim
+        self.prior = copy.deepcopy(actor.prior) if hasattr(actor, "prior") else None
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        return self.head(self.mlp((obs - self.obs_mean) / self.obs_denom))
+        mean = self.mlp((obs - self.obs_mean) / self.obs_denom)
+        if self.prior is not None:
+            mean = mean + self.prior(obs)
+        return self.head(mean)
 
 
 def build_actor(env, train_cfg, device: str = "cpu") -> nn.Module:
     """The training actor (rsl_rl model named in the train config) for `env`'s observations."""
-    cfg = train_cfg.to_rsl_rl()
+    cfg = train_cfg.to_rsl_rl(env.actor_prior())
     actor_class, actor_cfg = resolve_class(cfg["actor"])
     obs = env.get_observations().to(device)
     return actor_class(obs, cfg["obs_groups"], "actor", env.num_actions, **actor_cfg).to(device)
@@ -103,6 +112,21 @@ def propulsion_modes(env) -> dict[str, list[int]]:
         return {}
     masks = getattr(getattr(env.cfg, "modes", None), "masks", None) or PROPULSION_MODES
     return {str(name): [int(v) for v in mask] for name, mask in masks.items()}
+
+
+def gait_clock(env) -> dict:
+    """{"gait_clock": ...} for a policy that observes the gait clock (and carries the prior), else {}."""
+    prior = env.actor_prior()
+    if prior is None:
+        return {}
+    return {
+        "gait_clock": {
+            "frequency": float(prior["cfg"]["frequency"]),
+            "phase": "2 pi frequency step control_dt; step counts policy steps from 0 when the policy starts",
+            "prior": "the actor adds the skating prior (legged_casters/envs/gait.py) to its output: "
+            + ", ".join(f"{k} {v}" for k, v in prior["cfg"].items() if k != "enabled"),
+        }
+    }
 
 
 def policy_metadata(env, task: str) -> dict:
@@ -143,6 +167,8 @@ def policy_metadata(env, task: str) -> dict:
             "terms": terms,
         },
         "propulsion_modes": propulsion_modes(env),
+        **gait_clock(env),
+        **({"history": env.history_spec()} if getattr(env, "history_spec", lambda: None)() else {}),
         "files": {"onnx": "policy.onnx", "torchscript": "policy.pt"},
         "onnx": {"input": ONNX_INPUT, "output": ONNX_OUTPUT},
     }
@@ -294,6 +320,11 @@ def export(args: argparse.Namespace, default_log_root: Path | None) -> int:
         out = Path(args.out) if args.out else sel.run_dir / "exported"
         meta = policy_metadata(env, sel.task)
         paths = export_policy(actor, meta, out)
+        # The run's configs travel with the export: play/evaluate rebuild the task from them.
+        from legged_casters.config import dump_yaml
+
+        paths["env_cfg"] = dump_yaml(sel.env_cfg, out / "env.yaml")
+        paths["train_cfg"] = dump_yaml(sel.train_cfg, out / "train.yaml")
         # Real observations from a short rollout of the exported policy itself.
         policy = torch.jit.load(str(paths["torchscript"]))
         obs = env.get_observations()["policy"]

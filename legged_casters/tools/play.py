@@ -81,7 +81,20 @@ class PolicySource:
 def _resolve_source(args: argparse.Namespace, default_log_root: Path | None) -> PolicySource:
     root = common.log_root(args.log_root, default_log_root)
     if args.policy in (None, "checkpoint"):
-        sel = common.select_checkpoint(args, default_log_root)
+        try:
+            sel = common.select_checkpoint(args, default_log_root)
+        except UsageError:
+            # No run yet: a new user still sees the project's trained policy skate.
+            shipped = (
+                None
+                if (args.policy or args.load_run or args.checkpoint)
+                else common.shipped_policy_dir(common.select_task(args))
+            )
+            if shipped is None:
+                raise
+            print(f"[play.py] no training run found: playing the shipped policy {shipped / 'policy.pt'}")
+            args.policy = str(shipped / "policy.pt")
+            return _resolve_source(args, default_log_root)
         out = Path(args.out) if args.out else sel.run_dir / "play"
         label = f"{sel.ckpt_path.stem}"
         return PolicySource("checkpoint", sel.task, sel.spec, sel.env_cfg, sel.train_cfg, out, label, selection=sel)
@@ -105,10 +118,16 @@ def _resolve_source(args: argparse.Namespace, default_log_root: Path | None) -> 
     if meta.get("task") and meta["task"] != task:
         raise UsageError(f"{path} was exported for task {meta['task']!r}, not {task!r}")
     spec = common.check_task(task)
-    # An export in <run>/exported/ plays with its run's configs.
-    run_dir = path.parent.parent if (path.parent.parent / "env.yaml").is_file() else None
-    env_cfg, train_cfg = common.run_configs(spec, run_dir)
-    out = Path(args.out) if args.out else path.parent / "play"
+    # An export plays with the configs next to it (a shipped policy) or its run's (<run>/exported/).
+    cfg_dir = next((d for d in (path.parent, path.parent.parent) if (d / "env.yaml").is_file()), None)
+    env_cfg, train_cfg = common.run_configs(spec, cfg_dir)
+    shipped = path.resolve().parent.parent == common.SHIPPED_POLICIES
+    if args.out:
+        out = Path(args.out)
+    elif shipped:  # never write into resources/
+        out = root / spec.train_cfg.experiment_name / "play_shipped"
+    else:
+        out = path.parent / "play"
     kind = "torchscript" if path.suffix == ".pt" else "onnx"
     dim = (meta.get("observation") or {}).get("dim")
     return PolicySource(kind, task, spec, env_cfg, train_cfg, out, path.stem, path=path, obs_dim=dim)

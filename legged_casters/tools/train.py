@@ -26,6 +26,7 @@ from rsl_rl.runners import OnPolicyRunner
 
 from legged_casters.config import dump_yaml
 from legged_casters.envs.base import resolve_backend
+from legged_casters.robot import go2
 from legged_casters.sim.base import BACKEND_KINDS
 from legged_casters.tools import common
 from legged_casters.tools.common import CheckpointError, UsageError
@@ -110,6 +111,12 @@ def build_parser() -> argparse.ArgumentParser:
         "simulator's thread pool on 2 cores; on CUDA torch's default)",
     )
     p.add_argument(
+        "--eval_every",
+        type=int,
+        default=25,
+        help="evaluate the deterministic actor every N iterations (Eval/ in TensorBoard; 0: never)",
+    )
+    p.add_argument(
         "--console",
         choices=("block", "line"),
         default="block",
@@ -118,11 +125,14 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _progress_hook(runner: CheckpointingRunner, console: str, task: str) -> None:
-    """Wrap the rsl_rl logger's per-iteration report with a one-line progress summary."""
+def _progress_hook(runner: CheckpointingRunner, console: str, task: str, evaluator=None, eval_every: int = 0) -> None:
+    """Wrap the rsl_rl logger's per-iteration report with a one-line progress summary and,
+    every `eval_every` iterations, the deterministic evaluation (TensorBoard Eval/...)."""
     logger = runner.logger
     original = logger.log
     steps_per_it = runner.cfg["num_steps_per_env"] * runner.env.num_envs * logger.gpu_world_size
+    last_eval: dict[str, float] = {}
+    eval_time = [0.0]
 
     def log(**kw):
         if console == "line":
@@ -138,9 +148,28 @@ def _progress_hook(runner: CheckpointingRunner, console: str, task: str) -> None
         eta = logger.tot_time / max(done, 1) * (total_it - it - 1)
         reward = statistics.mean(logger.rewbuffer) if logger.rewbuffer else math.nan
         length = statistics.mean(logger.lenbuffer) if logger.lenbuffer else math.nan
+        std = kw.get("action_std")
+        if std is not None:
+            per_joint = std.reshape(-1, len(go2.ACTUATED_JOINTS))[0].tolist()
+            for name, value in zip(go2.ACTUATED_JOINTS, per_joint, strict=True):
+                logger.writer.add_scalar(f"Noise/std_{name}", value, it)
+        if evaluator is not None and eval_every and ((it + 1) % eval_every == 0 or it + 1 == total_it or done == 1):
+            t0 = time.time()
+            last_eval.clear()
+            last_eval.update(evaluator(runner.alg.get_policy()))
+            eval_time[0] += time.time() - t0
+            for key, value in last_eval.items():
+                logger.writer.add_scalar(f"Eval/{key}", value, it)
+            logger.writer.add_scalar("Eval/time_share", eval_time[0] / max(logger.tot_time + eval_time[0], 1e-9), it)
+        ev = ""
+        if last_eval:
+            ev = " | eval |err| " + " ".join(
+                f"{k[:2]} {last_eval[k]:.2f}" for k in ("vx_error", "vy_error", "wz_error") if k in last_eval
+            )
+            ev += f" falls {last_eval.get('falls', 0):.0f}"
         print(
             f"[{task}] it {it + 1}/{total_it} | {steps_per_it / it_time:,.0f} steps/s | {it_time:.2f} s/it "
-            f"(collect {kw['collect_time']:.2f}) | mean reward {reward:.3f} | ep len {length:.0f} | "
+            f"(collect {kw['collect_time']:.2f}) | mean reward {reward:.3f} | ep len {length:.0f}{ev} | "
             f"ETA {datetime.timedelta(seconds=int(eta))}",
             flush=True,
         )
@@ -187,6 +216,8 @@ def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Pa
     world = int(os.environ.get("WORLD_SIZE", "1"))
     if world > 1 and device != f"cuda:{int(os.environ.get('LOCAL_RANK', '0'))}":
         raise UsageError(f"distributed training (WORLD_SIZE={world}) needs --device auto or cuda:LOCAL_RANK")
+    if args.eval_every < 0:
+        raise UsageError(f"--eval_every must be 0 (off) or positive, got {args.eval_every}")
     if args.torch_threads is not None and args.torch_threads < 1:
         raise UsageError(f"--torch_threads must be at least 1, got {args.torch_threads}")
     root = common.log_root(args.log_root, default_log_root)
@@ -226,9 +257,10 @@ def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Pa
         f"[{PROG}] task {task}: {env.num_envs} envs on the {env.backend_kind} backend, device {device}, "
         f"obs {env.observation_dims()}, control dt {env.dt:.3f} s (env built in {time.time() - t0:.1f} s)"
     )
-    rsl_cfg = train_cfg.to_rsl_rl()
+    rsl_cfg = train_cfg.to_rsl_rl(env.actor_prior())
     rsl_cfg["run_name"] = train_cfg.run_name
     log_dir = str(run_dir) if rank == 0 else None
+    evaluator = None
     try:
         runner = CheckpointingRunner(env, rsl_cfg, log_dir=log_dir, device=device, task=task)
         runner.logger.git_status_repos = []  # the code state is ours to record (git.yaml, git.diff)
@@ -238,7 +270,11 @@ def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Pa
         if rank == 0:
             _write_run_files(run_dir, task, experiment, env_cfg, train_cfg, argv, ckpt_path)
             print(f"[{PROG}] run folder {run_dir}")
-        _progress_hook(runner, args.console, task)
+        if args.eval_every and rank == 0:
+            from legged_casters.tools.evaluate import DeterministicEval
+
+            evaluator = DeterministicEval(spec, env_cfg)
+        _progress_hook(runner, args.console, task, evaluator, args.eval_every)
         try:
             runner.learn(num_learning_iterations=train_cfg.max_iterations, init_at_random_ep_len=True)
         except KeyboardInterrupt:
@@ -249,6 +285,8 @@ def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Pa
             return 130
     finally:
         env.close()
+        if evaluator is not None:
+            evaluator.close()
     if rank == 0:
         last = common.checkpoints(run_dir)[-1][1]
         print(f"[{PROG}] done: {last}")

@@ -1,0 +1,138 @@
+"""The skating prior: a command-driven trajectory generator the policy refines.
+
+Section III of the paper says what makes a caster push: a swivel axis tilted
+towards the desired motion (alpha > 0 along it) and a caster deflection phi that
+keeps changing. This module writes that down as joint-target offsets, computed from
+the velocity command, the propulsion-mode mask and a clock phase only, so that the
+deployed policy can compute it from what it observes:
+
+* Posture: each leg tilts its caster's swivel axis towards the velocity its foot
+  should have, v_i = v_cmd + w_cmd x r_i (r_i: the foot's nominal position in the
+  trunk frame). On the Go2's legs the axis pitches with thigh + calf (rad per rad)
+  and rolls with minus the hip angle; the thigh/calf split keeps the foot height.
+* Oscillation: a sine at `frequency` that deflects the casters across the direction
+  of travel: the hips splay the legs sideways (left and right in antiphase) for the
+  foot velocity's x part, the thighs swing front and rear legs in antiphase for its
+  y part. Casters masked by the propulsion mode do not oscillate.
+* Both fade in with the foot's commanded speed (zero command: the nominal pose).
+
+The actor adds this prior to its MLP output (`legged_casters.models.PriorMLPModel`,
+in action units); the env applies actions as they come. The export wraps both into
+one network, so a robot runs the sum from the observation alone (the clock phase is
+an observation term that the deployment bridge computes from its own step counter,
+see policy.yaml `gait_clock`). A zero action is therefore the nominal pose, not the
+prior: `play.py --policy zero` stands.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+
+from legged_casters.robot import go2
+
+
+@dataclass
+class GaitPriorCfg:
+    enabled: bool = False
+    """Put the clock phase in the actor observation and the prior inside the actor."""
+    frequency: float = field(default=1.5, metadata={"min": 0.01})
+    """Oscillation frequency (Hz); the clock phase advances 2 pi f per second."""
+    amplitude: float = field(default=0.15, metadata={"min": 0.0})
+    """Oscillation amplitude (rad) at full speed."""
+    tilt: float = field(default=0.30, metadata={"min": 0.0})
+    """Swivel-axis tilt towards the foot's commanded velocity (rad) at full speed."""
+    thigh_share: float = field(default=0.78, metadata={"min": 0.0, "max": 1.0})
+    """Share of a pitch tilt made by the thigh (the calf makes the rest); 0.78 keeps the
+    foot height to first order in the standing pose."""
+    full_speed: float = field(default=0.5, metadata={"min": 1e-3})
+    """Foot speed (m/s) at which tilt and amplitude reach their full values (linear ramp)."""
+    lateral_gain: float = field(default=1.0, metadata={"min": 0.0})
+    """Scale of the lateral (y) tilt relative to the pitch tilt."""
+
+
+FOOT_XY = torch.tensor(
+    [
+        [go2.leg_signs(leg)[0] * go2.HIP_OFFSET[0], go2.leg_signs(leg)[1] * (go2.HIP_OFFSET[1] + go2.THIGH_OFFSET[1])]
+        for leg in go2.LEGS
+    ]
+)
+"""Nominal foot positions in the trunk frame (x, y), m, in go2.LEGS order."""
+
+_SIDE = torch.tensor([go2.leg_signs(leg)[1] for leg in go2.LEGS])  # left +1
+_FRONT = torch.tensor([go2.leg_signs(leg)[0] for leg in go2.LEGS])  # front +1
+
+
+def _prior(
+    commands: torch.Tensor,
+    mask: torch.Tensor,
+    sin_phase: torch.Tensor,
+    foot_xy: torch.Tensor,
+    side: torch.Tensor,
+    front: torch.Tensor,
+    tilt: float,
+    amplitude: float,
+    thigh_share: float,
+    full_speed: float,
+    lateral_gain: float,
+) -> torch.Tensor:
+    # Each foot's commanded planar velocity v + w x r (trunk frame), (n, 4) per axis.
+    vx = commands[:, 0:1] - commands[:, 2:3] * foot_xy[:, 1]
+    vy = commands[:, 1:2] + commands[:, 2:3] * foot_xy[:, 0]
+    speed = torch.sqrt(vx * vx + vy * vy + 1e-12)
+    ramp = (speed / full_speed).clamp(max=1.0)
+    ux, uy = vx / speed.clamp(min=1e-6), vy / speed.clamp(min=1e-6)
+    tilt_x = tilt * ramp * ux
+    tilt_y = tilt * lateral_gain * ramp * uy
+    wave = sin_phase.unsqueeze(1) * amplitude * ramp * (1.0 - mask)
+    hip = -tilt_y + side * wave * ux.abs()
+    thigh = thigh_share * tilt_x - front * wave * uy.abs()
+    calf = (1.0 - thigh_share) * tilt_x
+    return torch.stack([hip, thigh, calf], dim=-1).reshape(-1, 12)
+
+
+def gait_prior(cfg: GaitPriorCfg, commands: torch.Tensor, mask: torch.Tensor, sin_phase: torch.Tensor) -> torch.Tensor:
+    """Joint-target offsets (n, 12) in rad, go2.ACTUATED_JOINTS order.
+
+    commands (n, 3): vx, vy (m/s), wz (rad/s) in the trunk frame; mask (n, 4): 1 = that
+    caster must not oscillate; sin_phase (n,): sine of the clock phase."""
+    dev = commands.device
+    return _prior(
+        commands, mask, sin_phase, FOOT_XY.to(dev), _SIDE.to(dev), _FRONT.to(dev),
+        cfg.tilt, cfg.amplitude, cfg.thigh_share, cfg.full_speed, cfg.lateral_gain,
+    )  # fmt: skip
+
+
+class GaitPrior(torch.nn.Module):
+    """The prior inside the actor: raw policy observation (n, dim) -> prior action
+    (n, 12) in action units. `slices` gives (start, scale) of the observation terms
+    commands, mode_mask and gait_phase (the layout is the env's). Scriptable."""
+
+    def __init__(self, cfg: dict, slices: dict[str, list[float]], action_scale: float):
+        super().__init__()
+        c = GaitPriorCfg(**cfg)
+        self.tilt, self.amplitude, self.thigh_share = float(c.tilt), float(c.amplitude), float(c.thigh_share)
+        self.full_speed, self.lateral_gain = float(c.full_speed), float(c.lateral_gain)
+        self.cmd_start, self.cmd_scale = int(slices["commands"][0]), float(slices["commands"][1])
+        self.mask_start, self.mask_scale = int(slices["mode_mask"][0]), float(slices["mode_mask"][1])
+        self.phase_start, self.phase_scale = int(slices["gait_phase"][0]), float(slices["gait_phase"][1])
+        self.action_scale = float(action_scale)
+        self.register_buffer("foot_xy", FOOT_XY.clone(), persistent=False)
+        self.register_buffer("side", _SIDE.clone(), persistent=False)
+        self.register_buffer("front", _FRONT.clone(), persistent=False)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        commands = obs[:, self.cmd_start : self.cmd_start + 3] / self.cmd_scale
+        mask = obs[:, self.mask_start : self.mask_start + 4] / self.mask_scale
+        sin_phase = obs[:, self.phase_start] / self.phase_scale
+        offsets = _prior(
+            commands, mask, sin_phase, self.foot_xy, self.side, self.front,
+            self.tilt, self.amplitude, self.thigh_share, self.full_speed, self.lateral_gain,
+        )  # fmt: skip
+        return offsets / self.action_scale
+
+
+def advance_phase(phase: torch.Tensor, frequency: float, dt: float) -> torch.Tensor:
+    return torch.remainder(phase + 2.0 * math.pi * frequency * dt, 2.0 * math.pi)

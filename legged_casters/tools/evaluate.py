@@ -1,0 +1,431 @@
+"""evaluate: a caster policy through fixed scenarios, noise and randomisation off.
+
+    python scripts/evaluate.py                         # newest caster_omni run, else the shipped policy
+    python scripts/evaluate.py --load_run <run> --checkpoint 500
+    python scripts/evaluate.py --policy resources/policies/caster_omni   # an exported folder / policy.pt
+
+Every scenario runs in its own env of one batched env, from a standing start, with
+the command schedule it names; errors are trunk-frame velocity errors averaged over
+the scenario's measurement window (after the robot has had time to reach speed).
+The same code, with the `quick` scenario set, is the deterministic evaluation that
+train.py runs every few iterations (TensorBoard `Eval/...`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import math
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tensordict import TensorDict
+
+from legged_casters.tools import common
+from legged_casters.tools.common import UsageError
+
+PROG = "evaluate.py"
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    segments: tuple[tuple[float, tuple[float, float, float]], ...]
+    """(start time s, command (vx, vy, wz)) pieces; the last holds to the end."""
+    duration: float = 8.0
+    measure_from: float = 3.0
+    """Errors are averaged from this time to the end."""
+    mode: str = "four_wheel"
+    copies: int = 1
+    random_commands: bool = False
+    """Commands drawn from the task's ranges every 5 s instead of `segments`; pushes on."""
+    kind: str = "track"
+
+    def command(self, t: float) -> tuple[float, float, float]:
+        cmd = self.segments[0][1]
+        for start, c in self.segments:
+            if t >= start:
+                cmd = c
+        return cmd
+
+
+def _const(name: str, cmd, **kw) -> Scenario:
+    return Scenario(name, ((0.0, cmd),), **kw)
+
+
+TRACKING = (
+    _const("vx +0.5", (0.5, 0.0, 0.0)),
+    _const("vx -0.5", (-0.5, 0.0, 0.0)),
+    _const("vx +1.0", (1.0, 0.0, 0.0)),
+    _const("vx -1.0", (-1.0, 0.0, 0.0)),
+    _const("vx +2.0", (2.0, 0.0, 0.0)),
+    _const("vy +0.4", (0.0, 0.4, 0.0)),
+    _const("vy -0.4", (0.0, -0.4, 0.0)),
+    _const("wz +0.8", (0.0, 0.0, 0.8)),
+    _const("wz -0.8", (0.0, 0.0, -0.8)),
+)
+FULL = TRACKING + (
+    Scenario(
+        "fig6 step", ((0.0, (0.0, 0.0, 0.0)), (2.0, (-0.6, 0.0, 0.0)), (6.0, (0.6, 0.0, 0.0))), 10.0, 6.0, kind="step"
+    ),  # fmt: skip
+    _const("mode four_wheel", (0.8, 0.0, 0.0), mode="four_wheel", kind="mode"),
+    _const("mode front_wheel", (0.8, 0.0, 0.0), mode="front_wheel", kind="mode"),
+    _const("mode rear_wheel", (0.8, 0.0, 0.0), mode="rear_wheel", kind="mode"),
+    Scenario("random+pushes", ((0.0, (0.0, 0.0, 0.0)),), 100.0, 0.0, copies=4, random_commands=True, kind="random"),
+)
+QUICK = tuple(
+    Scenario(s.name, s.segments, 5.0, 2.0)
+    for s in TRACKING
+    if s.name in ("vx +0.5", "vx -0.5", "vx +1.0", "vy +0.4", "vy -0.4", "wz +0.8", "wz -0.8")
+)
+SCENARIO_SETS = {"full": FULL, "quick": QUICK}
+
+THRESHOLDS = {
+    "vx +0.5": ("vx", 0.15), "vx -0.5": ("vx", 0.15), "vx +1.0": ("vx", 0.15), "vx -1.0": ("vx", 0.15),
+    "vx +2.0": ("vx", 0.3), "vy +0.4": ("vy", 0.15), "vy -0.4": ("vy", 0.15),
+    "wz +0.8": ("wz", 0.25), "wz -0.8": ("wz", 0.25),
+}  # fmt: skip
+"""Issue 9's bar: scenario -> (axis, max mean |error|)."""
+STEP_SIGN_CHANGE_S = 1.5
+SIGN_CHANGE_MARGIN = 0.05
+"""m/s: after the Fig. 6 step, the sign has changed once vx exceeds this (not mere jitter)."""
+MODE_SWIVEL_RATIO = 0.2
+MODE_VX_ERROR = 0.25
+PUSH_INTERVAL_S, PUSH_VEL = 8.0, 0.5
+
+
+EVAL_SETTINGS = {
+    "noise.enabled": False,
+    "domain_rand.push_robots": False,
+    "domain_rand.randomize_friction": False,
+    "domain_rand.randomize_base_mass": False,
+    "domain_rand.randomize_com": False,
+    "domain_rand.randomize_gains": False,
+    "domain_rand.joint_damping": {},
+    "domain_rand.joint_frictionloss_scale": {},
+    "init_state.joint_pos_noise": 0.0,
+    "init_state.base_vel_noise": 0.0,
+    "init_state.random_yaw": False,
+    "commands.curriculum": False,
+}
+"""What makes an env an evaluation env: no noise, no randomisation, a standing start."""
+
+
+def eval_env_cfg(env_cfg, scenarios, backend: str = "cpu"):
+    n = sum(s.copies for s in scenarios)
+    longest = max(s.duration for s in scenarios)
+    fields = {**EVAL_SETTINGS, "num_envs": n, "episode_length_s": longest + 1.0, "sim.backend": backend}
+    fields["sim.device"] = "cpu" if backend == "cpu" else env_cfg.sim.device
+    return common.with_overrides(env_cfg, fields, "evaluation env")
+
+
+Policy = Callable[[TensorDict], torch.Tensor]
+
+
+@dataclass
+class ScenarioResult:
+    name: str
+    kind: str
+    cmd: tuple[float, float, float]
+    mean: dict[str, float] = field(default_factory=dict)
+    """Mean trunk-frame vx, vy, wz over the window."""
+    err: dict[str, float] = field(default_factory=dict)
+    """Mean |error| of vx, vy, wz over the window."""
+    falls: int = 0
+    extra: dict[str, float] = field(default_factory=dict)
+
+
+def run_scenarios(env, policy: Policy, scenarios=QUICK, seed: int = 0) -> list[ScenarioResult]:
+    """Run `policy` (TensorDict obs -> actions) on `env` (an evaluation env with one env
+    per scenario copy) through `scenarios`; return one result per scenario."""
+    dev = env.device
+    n = env.num_envs
+    owner = [i for i, s in enumerate(scenarios) for _ in range(s.copies)]
+    if len(owner) != n:
+        raise ValueError(f"the evaluation env has {n} envs, the scenarios need {len(owner)}")
+    owner_t = torch.tensor(owner, device=dev)
+    gen = torch.Generator().manual_seed(seed)
+    ranges = env.command_ranges
+    modes_ok = hasattr(env, "set_mode")
+    if modes_ok:
+        for i, s in enumerate(scenarios):
+            env.set_mode(s.mode, (owner_t == i).nonzero().flatten())
+    env.set_commands(torch.zeros(n, 3))
+    obs = env.reset()
+    obs = env.get_observations()
+    steps = int(round(max(s.duration for s in scenarios) / env.dt))
+    random_cmd = torch.zeros(n, 3)
+    push_every = int(round(PUSH_INTERVAL_S / env.dt))
+    vel_log = torch.zeros(steps, n, 3)
+    swivel_log = torch.zeros(steps, n, 4) if hasattr(env, "swivel_vel") else None
+    falls = torch.zeros(n, dtype=torch.long)
+    alive = torch.ones(n, dtype=torch.bool)  # a scenario copy counts until it ends
+    cmds_all = torch.zeros(steps, n, 3)
+    for k in range(steps):
+        t = k * env.dt
+        cmd = torch.zeros(n, 3)
+        for j, i in enumerate(owner):
+            s = scenarios[i]
+            if t > s.duration:
+                alive[j] = False
+            if s.random_commands:
+                if k % int(round(5.0 / env.dt)) == 0:
+                    for c, key in enumerate(("lin_vel_x", "lin_vel_y", "ang_vel_yaw")):
+                        lo, hi = ranges[key]
+                        random_cmd[j, c] = lo + (hi - lo) * torch.rand(1, generator=gen).item()
+                cmd[j] = random_cmd[j]
+            else:
+                cmd[j] = torch.tensor(s.command(t))
+        cmds_all[k] = cmd
+        changed = not torch.equal(env.commands.cpu(), cmd)
+        env.commands[:] = cmd.to(dev)
+        if changed:  # the policy sees a new command at once, not one step late
+            obs = env.compute_observations()
+        if k and k % push_every == 0:
+            rnd = [j for j, i in enumerate(owner) if scenarios[i].random_commands]
+            if rnd:
+                ids = torch.tensor(rnd, device=dev)
+                qvel = env.sim.qvel[ids].clone()
+                qvel[:, 0:2] += (torch.rand(len(rnd), 2, generator=gen).to(dev) * 2 - 1) * PUSH_VEL
+                env.sim.reset(ids, env.sim.qpos[ids].clone(), qvel)
+        with torch.no_grad():
+            actions = policy(obs)
+        obs, _, dones, _ = env.step(actions)
+        fell = (env.terminated_buf & ~env.time_out_buf).cpu()
+        falls += (fell & alive).long()
+        vel_log[k] = torch.cat([env.base_lin_vel[:, :2], env.base_ang_vel[:, 2:3]], dim=1).cpu()
+        if swivel_log is not None:
+            swivel_log[k] = env.swivel_vel.cpu()
+    results = []
+    for i, s in enumerate(scenarios):
+        cols = [j for j, o in enumerate(owner) if o == i]
+        k0, k1 = int(round(s.measure_from / env.dt)), int(round(s.duration / env.dt))
+        v = vel_log[k0:k1, cols]
+        c = cmds_all[k0:k1, cols]
+        r = ScenarioResult(s.name, s.kind, s.command(s.duration))
+        for a, key in enumerate(("vx", "vy", "wz")):
+            r.mean[key] = float(v[..., a].mean())
+            r.err[key] = float((v[..., a] - c[..., a]).abs().mean())
+        r.falls = int(falls[cols].sum())
+        if s.kind == "step":
+            t_step = s.segments[-1][0]
+            ks = int(round(t_step / env.dt))
+            # vel_log[k] is the velocity after step k, i.e. at time (k + 1) dt.
+            vx = vel_log[ks:k1, cols[0], 0]
+            before = float(vel_log[ks - int(round(1.0 / env.dt)) : ks, cols[0], 0].mean())
+            positive = (vx > SIGN_CHANGE_MARGIN).nonzero().flatten()
+            reversed_ = before < -SIGN_CHANGE_MARGIN and len(positive) > 0
+            # No backward motion before the step, no sign change to time: that fails the check.
+            r.extra["sign_change_s"] = float(positive[0] + 1) * env.dt if reversed_ else math.inf
+            r.extra["vx_before_step"] = before
+        if s.kind == "mode" and swivel_log is not None:
+            rms = swivel_log[k0:k1, cols[0]].pow(2).mean(0).sqrt()
+            mask = torch.tensor(env.cfg.modes.masks[s.mode], dtype=torch.bool)
+            for leg, value in zip(("FL", "FR", "RL", "RR"), rms.tolist(), strict=True):
+                r.extra[f"swivel_rms_{leg}"] = value
+            if mask.any():
+                r.extra["masked_over_driven"] = float(rms[mask].mean() / rms[~mask].mean().clamp(min=1e-9))
+        results.append(r)
+    return results
+
+
+def summary(results: list[ScenarioResult]) -> dict[str, float]:
+    """Scalars for TensorBoard: mean |error| per axis over the tracking scenarios, falls."""
+    track = [r for r in results if r.kind == "track"]
+    out = {}
+    for key in ("vx", "vy", "wz"):
+        rel = [r.err[key] for r in track if r.name.startswith(key)]
+        if rel:
+            out[f"{key}_error"] = float(np.mean(rel))
+    out["falls"] = float(sum(r.falls for r in results))
+    return out
+
+
+def verdict(results: list[ScenarioResult]) -> list[tuple[str, bool, str]]:
+    """(check, passed, measured) against issue 9's thresholds."""
+    checks = []
+    by = {r.name: r for r in results}
+    for name, (axis, bar) in THRESHOLDS.items():
+        if name in by:
+            e = by[name].err[axis]
+            checks.append((f"{name}: |{axis} error| <= {bar}", e <= bar, f"{e:.3f}"))
+    if "fig6 step" in by:
+        t = by["fig6 step"].extra["sign_change_s"]
+        checks.append(
+            (f"fig6 step: vx changes sign within {STEP_SIGN_CHANGE_S} s", t <= STEP_SIGN_CHANGE_S, f"{t:.2f} s")
+        )
+    if "random+pushes" in by:
+        f = by["random+pushes"].falls
+        checks.append(("random commands + pushes: 0 falls", f == 0, str(f)))
+    for mode in ("front_wheel", "rear_wheel"):
+        r = by.get(f"mode {mode}")
+        if r is None:
+            continue
+        ratio = r.extra.get("masked_over_driven", math.nan)
+        checks.append(
+            (f"{mode}: masked/driven swivel RMS <= {MODE_SWIVEL_RATIO}", ratio <= MODE_SWIVEL_RATIO, f"{ratio:.2f}")
+        )
+        checks.append((f"{mode}: |vx error| <= {MODE_VX_ERROR}", r.err["vx"] <= MODE_VX_ERROR, f"{r.err['vx']:.3f}"))
+    return checks
+
+
+def format_table(results: list[ScenarioResult]) -> str:
+    lines = [
+        "| scenario | command (vx, vy, wz) | mean vx | mean vy | mean wz "
+        "| abs err vx | abs err vy | abs err wz | falls | notes |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---|",
+    ]
+    for r in results:
+        cmd = "random" if r.kind == "random" else "({:+.1f}, {:+.1f}, {:+.1f})".format(*r.cmd)
+        notes = ", ".join(f"{k} {v:.2f}" for k, v in r.extra.items())
+        lines.append(
+            f"| {r.name} | {cmd} | {r.mean['vx']:+.2f} | {r.mean['vy']:+.2f} | {r.mean['wz']:+.2f} | "
+            f"{r.err['vx']:.3f} | {r.err['vy']:.3f} | {r.err['wz']:.3f} | {r.falls} | {notes} |"
+        )
+    return "\n".join(lines)
+
+
+@contextlib.contextmanager
+def _rng_kept():
+    """Run a block without changing torch's and numpy's global random state."""
+    np_state = np.random.get_state()
+    with torch.random.fork_rng(devices=[]):
+        yield
+    np.random.set_state(np_state)
+
+
+class DeterministicEval:
+    """The periodic evaluation inside train.py: a small env built once, the quick scenarios."""
+
+    def __init__(self, spec, env_cfg, scenarios=QUICK):
+        self.scenarios = scenarios
+        with _rng_kept():  # building and running it leave training's random streams alone
+            self.env = spec.env_class(eval_env_cfg(env_cfg, scenarios))
+
+    def __call__(self, actor) -> dict[str, float]:
+        was_training = actor.training
+        actor.eval()
+        with _rng_kept():
+            return self._run(actor, was_training)
+
+    def _run(self, actor, was_training: bool) -> dict[str, float]:
+        try:
+            device = next(actor.parameters()).device
+            results = run_scenarios(self.env, lambda obs: actor(obs.to(device)), self.scenarios)
+        finally:
+            actor.train(was_training)
+        return summary(results)
+
+    def close(self) -> None:
+        self.env.close()
+
+
+# --- CLI ------------------------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    common.add_run_selection_flags(p)
+    p.add_argument("--policy", help="an exported policy folder or its policy.pt (instead of a run)")
+    p.add_argument("--scenarios", choices=sorted(SCENARIO_SETS), default="full")
+    p.add_argument("--stochastic", action="store_true", help="checkpoints only: sample actions with the actor's noise")
+    return p
+
+
+def _load_exported(path: Path, task_arg: str | None):
+    """An exported policy.pt (or its folder) -> (task, spec, env cfg, policy, label). The
+    env config is the export folder's env.yaml (shipped policies), else its run's."""
+    import yaml
+
+    file = path / "policy.pt" if path.is_dir() else path
+    if not file.is_file() or file.suffix != ".pt":
+        raise UsageError(f"--policy {path}: expected an exported folder with policy.pt, or a policy.pt file")
+    meta_path = file.with_suffix(".yaml")
+    try:
+        meta = (yaml.safe_load(meta_path.read_text()) or {}) if meta_path.is_file() else {}
+    except yaml.YAMLError as err:
+        raise UsageError(f"{meta_path} is not valid YAML: {str(err).splitlines()[0]}") from None
+    if not isinstance(meta, dict):
+        raise UsageError(f"{meta_path}: not a policy description (a YAML mapping)")
+    task = task_arg or meta.get("task") or common.default_task()
+    if meta.get("task") and meta["task"] != task:
+        raise UsageError(f"{file} was exported for task {meta['task']!r}, not {task!r}")
+    spec = common.check_task(task)
+    cfg_dir = next((d for d in (file.parent, file.parent.parent) if (d / "env.yaml").is_file()), None)
+    env_cfg, _ = common.run_configs(spec, cfg_dir)
+    try:
+        module = torch.jit.load(str(file), map_location="cpu").eval()
+    except RuntimeError as err:
+        first = str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise common.CheckpointError(f"{file} could not be loaded as a TorchScript policy: {first}") from None
+    dim = (meta.get("observation") or {}).get("dim")
+    return task, spec, env_cfg, (lambda obs: module(obs["policy"])), f"{file}", dim
+
+
+def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
+    if args.policy:
+        if args.stochastic:
+            raise UsageError("--stochastic needs a training checkpoint (an exported policy is deterministic)")
+        if args.load_run or args.checkpoint:
+            raise UsageError(
+                "--policy evaluates an exported policy; --load_run/--checkpoint choose a training run: pick one"
+            )
+        task, spec, env_cfg, policy, label, dim = _load_exported(Path(args.policy).expanduser(), args.task)
+    else:
+        dim = None
+        try:
+            sel = common.select_checkpoint(args, default_log_root)
+        except UsageError as err:
+            shipped = common.shipped_policy_dir(args.task or common.default_task())
+            if args.load_run or args.checkpoint or args.experiment_name or shipped is None:
+                raise err from None
+            if args.stochastic:
+                raise UsageError(
+                    "--stochastic needs a training checkpoint; no run was found (train one first)"
+                ) from None
+            print(f"[{PROG}] no run found: evaluating the shipped policy {shipped}")
+            task, spec, env_cfg, policy, label, dim = _load_exported(shipped, args.task)
+            sel = None
+        if sel is not None:
+            from legged_casters.tools.export import load_actor
+
+            task, spec, env_cfg = sel.task, sel.spec, sel.env_cfg
+            probe = spec.env_class(eval_env_cfg(env_cfg, QUICK[:1]))
+            actor = load_actor(probe, sel.train_cfg, sel.ckpt, sel.ckpt_path)
+            probe.close()
+            stochastic = bool(args.stochastic)
+            policy = lambda obs: actor(obs, stochastic_output=stochastic)  # noqa: E731
+            label = f"{sel.ckpt_path}" + (" (stochastic)" if stochastic else "")
+    scenarios = SCENARIO_SETS[args.scenarios]
+    env = spec.env_class(eval_env_cfg(env_cfg, scenarios))
+    if dim is not None and dim != env.observation_dims()["policy"]:
+        env.close()
+        raise common.CheckpointError(
+            f"{label} expects {dim} observations; task {task} as configured gives {env.observation_dims()['policy']}"
+        )
+    print(f"[{PROG}] {label}: task {task}, {len(scenarios)} scenarios on {env.num_envs} envs")
+    t0 = time.time()
+    try:
+        results = run_scenarios(env, policy, scenarios)
+    finally:
+        env.close()
+    print(format_table(results))
+    checks = verdict(results)
+    passed = sum(ok for _, ok, _ in checks)
+    print()
+    for name, ok, value in checks:
+        print(f"{'PASS' if ok else 'FAIL'}  {name}  (measured {value})")
+    print(f"\n[{PROG}] verdict: {passed}/{len(checks)} checks passed ({time.time() - t0:.0f} s)")
+    return common.EXIT_OK
+
+
+def main(argv: list[str] | None = None, default_log_root: Path | str | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return common.run_cli(lambda: evaluate(args, Path(default_log_root) if default_log_root else None), PROG)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,231 @@
+"""caster_omni (the skating configuration): the gait prior, its clock, the actor that
+carries it, its export and the bridge's copy of the clock, and the evaluation."""
+
+import copy
+
+import numpy as np
+import pytest
+import torch
+import yaml
+from rsl_rl.runners import OnPolicyRunner
+
+from legged_casters import registry
+from legged_casters.deploy import protocol as P
+from legged_casters.deploy.policy import ObservationBuilder, PolicyFormatError, load_meta
+from legged_casters.envs.gait import GaitPrior, GaitPriorCfg, gait_prior
+from legged_casters.models import PriorMLPModel
+from legged_casters.robot import go2
+from legged_casters.tools import evaluate, export
+
+TASK = "caster_omni"
+CPU = ["sim.backend=cpu"]
+CFG = GaitPriorCfg(enabled=True, frequency=2.0, amplitude=0.2, tilt=0.2, thigh_share=0.0, full_speed=0.5)
+
+
+def _prior(cmd, mask=(0, 0, 0, 0), sin_phase=1.0, cfg=CFG):
+    out = gait_prior(cfg, torch.tensor([cmd]), torch.tensor([mask], dtype=torch.float32), torch.tensor([sin_phase]))
+    return out.view(4, 3)  # legs x (hip, thigh, calf)
+
+
+def test_prior_is_the_nominal_pose_under_a_zero_command():
+    assert torch.equal(_prior((0.0, 0.0, 0.0)), torch.zeros(4, 3))
+
+
+def test_prior_tilts_the_swivel_axes_towards_the_command():
+    # At a zero clock phase there is no oscillation, only posture.
+    fwd, back = _prior((0.5, 0, 0), sin_phase=0.0), _prior((-0.5, 0, 0), sin_phase=0.0)
+    assert (fwd[:, 2] > 0.15).all() and (back[:, 2] < -0.15).all()  # calves pitch the axes forward / back
+    left = _prior((0, 0.5, 0), sin_phase=0.0)
+    assert (left[:, 0] < -0.15).all()  # hips roll the axes towards +y (axis y ~ -hip)
+    yaw = _prior((0, 0, 1.0), sin_phase=0.0)
+    # Counter-clockwise: front feet push +y (hips negative), rear feet -y; left feet back, right forward.
+    fl, fr, rl, rr = yaw
+    assert fl[0] < 0 and fr[0] < 0 and rl[0] > 0 and rr[0] > 0
+    assert fl[2] < 0 and rl[2] < 0 and fr[2] > 0 and rr[2] > 0
+
+
+def test_prior_oscillates_only_the_driving_casters_and_splays_across_the_motion():
+    a, b = _prior((0.5, 0, 0), sin_phase=1.0), _prior((0.5, 0, 0), sin_phase=0.0)
+    wave = a - b
+    assert wave[:, 0].tolist() == pytest.approx([0.2, -0.2, 0.2, -0.2])  # hips splay, left/right antiphase
+    assert wave[:, 1:].abs().max() < 1e-6
+    masked = _prior((0.5, 0, 0), mask=(0, 0, 1, 1)) - _prior((0.5, 0, 0), mask=(0, 0, 1, 1), sin_phase=0.0)
+    assert masked[2:].abs().max() < 1e-6 and masked[:2, 0].abs().min() > 0.19
+    side = _prior((0, 0.5, 0)) - _prior((0, 0.5, 0), sin_phase=0.0)
+    assert side[:, 1].tolist() == pytest.approx([-0.2, -0.2, 0.2, 0.2])  # thighs: front/rear antiphase
+
+
+@pytest.fixture(scope="module")
+def env():
+    e = registry.make_env(TASK, CPU, num_envs=3)
+    yield e
+    e.close()
+
+
+def test_skating_task_observes_the_clock_and_runs_at_5ms(env):
+    names = [n for n, _, _ in env.obs_layout["policy"]]
+    assert names == ["commands", "mode_mask", "ang_vel", "projected_gravity", "joint_pos", "joint_vel", "actions",
+                     "proprio_history", "gait_phase"]  # fmt: skip
+    assert env.observation_dims()["policy"] == 49 + 10 * 42 + 2
+    assert env.model.opt.timestep == pytest.approx(0.005) and env.dt == pytest.approx(0.02)
+    assert env.model.geom_solref[:, 0].min() >= 0.01 - 1e-9  # raised to 2 x timestep
+
+
+def test_clock_phase_advances_with_policy_steps_and_restarts_with_the_episode(env):
+    env.set_commands([0.5, 0.0, 0.0])
+    env.reset()
+    sl = slice(env.observation_dims()["policy"] - 2, None)
+    for k in range(1, 6):
+        obs, *_ = env.step(torch.zeros(3, 12))
+        phase = 2 * np.pi * env.cfg.gait.frequency * k * env.dt
+        assert obs["policy"][0, sl].tolist() == pytest.approx([np.sin(phase), np.cos(phase)], abs=1e-5)
+    env.reset_idx(torch.tensor([1]))
+    assert env.compute_observations()["policy"][1, sl].tolist() == pytest.approx([0.0, 1.0])
+
+
+def test_the_actor_computes_the_same_prior_from_its_observation(env):
+    env.set_commands(torch.tensor([[0.7, -0.2, 0.4], [0.0, 0.4, 0.0], [-0.5, 0.0, -0.8]]))
+    env.set_mode("front_wheel", torch.tensor([2]))
+    for _ in range(7):
+        obs, *_ = env.step(torch.zeros(3, 12))
+    p = env.actor_prior()
+    prior = GaitPrior(p["cfg"], p["slices"], p["action_scale"])
+    expect = env.gait_offsets() / env.cfg.control.action_scale
+    assert torch.allclose(prior(obs["policy"]), expect, atol=1e-6)
+    assert torch.jit.script(prior)(obs["policy"]).sub(expect).abs().max() < 1e-6
+
+
+def test_ppo_learns_a_residual_around_the_prior(tmp_path):
+    e = registry.make_env(TASK, CPU, num_envs=4)
+    cfg = registry.get_task(TASK).train_cfg.to_rsl_rl(e.actor_prior())
+    cfg["num_steps_per_env"] = 8
+    runner = OnPolicyRunner(e, copy.deepcopy(cfg), log_dir=str(tmp_path), device="cpu")
+    actor = runner.alg.actor
+    assert isinstance(actor, PriorMLPModel)
+    runner.learn(num_learning_iterations=2)
+    # The deterministic action is MLP + prior: zero the MLP's last layer and the prior remains.
+    last = [m for m in actor.mlp if isinstance(m, torch.nn.Linear)][-1]
+    with torch.no_grad():
+        last.weight.zero_()
+        last.bias.zero_()
+    e.set_commands([0.6, 0.0, 0.0])
+    obs = e.compute_observations()
+    expect = e.gait_offsets() / e.cfg.control.action_scale
+    with torch.no_grad():
+        assert torch.allclose(actor(obs), expect, atol=1e-6)
+        init_std = registry.get_task(TASK).train_cfg.policy.init_noise_std
+        assert init_std < 0.5  # the low initial noise (docs/tasks.md)
+        assert float(actor.distribution.std.mean()) == pytest.approx(init_std, rel=0.25)
+    e.close()
+
+
+def test_export_carries_the_prior_and_the_bridge_rebuilds_the_clock(tmp_path):
+    e = registry.make_env(TASK, CPU, num_envs=2)
+    actor = export.build_actor(e, registry.get_task(TASK).train_cfg)
+    e.set_commands([0.5, 0.2, 0.3])
+    for _ in range(4):
+        obs, *_ = e.step(torch.zeros(2, 12))
+    meta = export.policy_metadata(e, TASK)
+    assert meta["gait_clock"]["frequency"] == 2.0
+    paths = export.export_policy(actor, meta, tmp_path)
+    err = export.check_parity(actor, paths, obs["policy"])
+    assert max(err.values()) < 1e-5, err
+    # The bridge's observation after 4 policy steps has the env's clock phase.
+    bm = load_meta(tmp_path)
+    assert bm.gait_frequency == 2.0
+    state = P.RobotState([1.0, 0, 0, 0], [0.0] * 3, go2.default_joint_positions(), [0.0] * 12)
+    built = ObservationBuilder(bm).build(state, [0.5, 0.2, 0.3], [0, 0, 0, 0], np.zeros(12), step=4)
+    assert built[-2:].tolist() == pytest.approx(obs["policy"][0, -2:].tolist(), abs=1e-5)
+    # A policy that observes the clock without saying its frequency is refused.
+    text = yaml.safe_load((tmp_path / "policy.yaml").read_text())
+    del text["gait_clock"]
+    (tmp_path / "policy.yaml").write_text(yaml.safe_dump(text))
+    with pytest.raises(PolicyFormatError, match="gait_clock"):
+        load_meta(tmp_path)
+    e.close()
+
+
+def test_the_prior_alone_skates_in_every_direction():
+    """No learning: the prior's posture and oscillation move the robot the commanded way."""
+    spec = registry.get_task(TASK)
+    scen = tuple(
+        evaluate.Scenario(name, ((0.0, cmd),), 4.0, 2.0)
+        for name, cmd in (("fwd", (0.5, 0, 0)), ("back", (-0.5, 0, 0)), ("left", (0, 0.4, 0)), ("ccw", (0, 0, 0.8)))
+    )
+    e = spec.env_class(evaluate.eval_env_cfg(spec.env_cfg, scen))
+    p = e.actor_prior()
+    prior = GaitPrior(p["cfg"], p["slices"], p["action_scale"])
+    res = {r.name: r for r in evaluate.run_scenarios(e, lambda obs: prior(obs["policy"]), scen)}
+    e.close()
+    assert res["fwd"].mean["vx"] > 0.3 and res["back"].mean["vx"] < -0.3
+    assert res["left"].mean["vy"] > 0.2 and res["ccw"].mean["wz"] > 0.3
+
+
+def test_evaluation_of_a_standing_policy_reports_the_command_as_error():
+    spec = registry.get_task("caster_omni_paper")
+    scen = evaluate.QUICK[:3] + (evaluate.FULL[9],)  # vx +0.5, vx -0.5, vx +1.0, fig6 step
+    scen = tuple(evaluate.Scenario(s.name, s.segments, 3.0 if s.kind == "track" else s.duration, 1.0, kind=s.kind)
+                 for s in scen)  # fmt: skip
+    e = spec.env_class(evaluate.eval_env_cfg(spec.env_cfg, scen))
+    res = evaluate.run_scenarios(e, lambda obs: torch.zeros(e.num_envs, 12), scen)
+    e.close()
+    by = {r.name: r for r in res}
+    assert by["vx +0.5"].err["vx"] == pytest.approx(0.5, abs=0.05)
+    assert by["vx +1.0"].err["vx"] == pytest.approx(1.0, abs=0.05)
+    assert by["fig6 step"].extra["sign_change_s"] == float("inf")
+    checks = {name: ok for name, ok, _ in evaluate.verdict(res)}
+    assert not checks["vx +0.5: |vx error| <= 0.15"]
+    assert evaluate.summary(res)["vx_error"] == pytest.approx((0.5 + 0.5 + 1.0) / 3, abs=0.05)
+
+
+def test_bridge_rebuilds_the_whole_observation_with_clock_and_history(tmp_path):
+    """Drive the env, feed its measured state to the bridge's observation builder step by
+    step: the two observations agree (noise off), history and clock included."""
+    e = registry.make_env(TASK, CPU + ["history_length=3", "noise.enabled=false"], num_envs=1)
+    actor = export.build_actor(e, registry.get_task(TASK).train_cfg)
+    export.export_policy(actor, export.policy_metadata(e, TASK), tmp_path)
+    bm = load_meta(tmp_path)
+    assert bm.history_length == 3 and bm.history_terms[0] == "ang_vel"
+    builder = ObservationBuilder(bm)
+    cmd = [0.6, -0.1, 0.2]
+    e.set_commands(cmd)
+    e.set_mode("front_wheel")
+    obs = e.reset()
+    torch.manual_seed(0)
+    for k in range(6):
+        state = P.RobotState(
+            e.base_quat[0].tolist(), e.base_ang_vel[0].tolist(), e.joint_pos[0].tolist(), e.joint_vel[0].tolist()
+        )
+        built = builder.build(state, cmd, [0, 0, 1, 1], e.actions[0].numpy(), step=k)
+        assert np.allclose(built, obs["policy"][0].numpy(), atol=1e-4), k
+        obs, *_ = e.step(torch.randn(1, 12) * 0.3)
+    e.close()
+
+
+def test_single_axis_commands_keep_one_component():
+    e = registry.make_env(
+        TASK, CPU + ["commands.single_axis_fraction=1.0", "commands.standing_fraction=0"], num_envs=64
+    )
+    e.resample_commands(torch.arange(64))
+    nonzero = (e.commands != 0).sum(dim=1)
+    assert (nonzero == 1).all()
+    assert set((e.commands != 0).float().argmax(dim=1).tolist()) == {0, 1, 2}  # each axis gets its share
+    e.close()
+
+
+def test_the_shipped_policy_loads_everywhere_and_skates_forward():
+    from legged_casters.tools import common
+
+    shipped = common.shipped_policy_dir(TASK)
+    assert shipped is not None, "resources/policies/caster_omni/ must hold the trained policy"
+    meta = load_meta(shipped)  # the bridge accepts it
+    assert meta.task == TASK and meta.gait_frequency > 0
+    spec = registry.get_task(TASK)
+    env_cfg, _ = common.run_configs(spec, shipped)
+    scen = (evaluate.Scenario("fwd", ((0.0, (0.5, 0.0, 0.0)),), 4.0, 2.0),)
+    e = spec.env_class(evaluate.eval_env_cfg(env_cfg, scen))
+    assert e.observation_dims()["policy"] == meta.obs_dim
+    module = torch.jit.load(str(shipped / "policy.pt"))
+    (res,) = evaluate.run_scenarios(e, lambda obs: module(obs["policy"]), scen)
+    e.close()
+    assert res.mean["vx"] > 0.25 and res.falls == 0
