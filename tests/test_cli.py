@@ -109,6 +109,13 @@ def test_run_folder_holds_checkpoints_configs_git_state_and_events(run):
     tags = set(events.Tags()["scalars"])
     assert {"Eval/vx_error", "Eval/vy_error", "Eval/wz_error", "Eval/falls", "Eval/time_share"} <= tags
     assert {f"Noise/std_{j}" for j in go2.ACTUATED_JOINTS} <= tags
+    # The best-evaluated policy so far is kept as model_best.pt, reachable as --checkpoint best.
+    best = common.find_checkpoint(run_dir, "best")
+    assert best.name == "model_best.pt"
+    saved = torch.load(best, weights_only=True)
+    score = train.eval_score(saved["infos"]["eval"])
+    assert saved["infos"]["eval_score"] == pytest.approx(score)
+    assert score == pytest.approx(min(e.value for e in events.Scalars("Eval/score")), rel=1e-5)
 
 
 def test_checkpoints_load_weights_only_and_carry_env_state(run):

@@ -156,14 +156,15 @@ def find_run(root: Path, experiment: str, load_run: str | None) -> Path:
 
 
 def find_checkpoint(run_dir: Path, checkpoint: str | None) -> Path:
-    """--checkpoint: an iteration (5), a file name (model_5.pt) or a path; default the newest."""
+    """--checkpoint: an iteration (5), "best" (model_best.pt: the best deterministic
+    evaluation during training), a file name (model_5.pt) or a path; default the newest."""
     found = checkpoints(run_dir)
     available = ", ".join(p.name for _, p in found[-10:]) or "(none)"
     if checkpoint in (None, "", "-1", "latest"):
         if not found:
             raise UsageError(f"run {run_dir} has no checkpoint (model_<iteration>.pt)")
         return found[-1][1]
-    candidates = [run_dir / f"model_{checkpoint}.pt"] if checkpoint.isdigit() else []
+    candidates = [run_dir / f"model_{checkpoint}.pt"] if checkpoint.isdigit() or checkpoint == "best" else []
     candidates += [run_dir / checkpoint, Path(checkpoint).expanduser()]
     for c in candidates:
         if c.is_file():

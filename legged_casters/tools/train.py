@@ -125,6 +125,16 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+BEST_CHECKPOINT = "model_best.pt"
+"""The checkpoint with the lowest evaluation score so far (`--checkpoint best`)."""
+
+
+def eval_score(summary: dict[str, float]) -> float:
+    """One number for the deterministic evaluation, lower is better: the mean |error| of
+    vx and vy (m/s) and wz (rad/s) added up, plus one per fall."""
+    return sum(summary.get(k, 0.0) for k in ("vx_error", "vy_error", "wz_error")) + summary.get("falls", 0.0)
+
+
 def _progress_hook(runner: CheckpointingRunner, console: str, task: str, evaluator=None, eval_every: int = 0) -> None:
     """Wrap the rsl_rl logger's per-iteration report with a one-line progress summary and,
     every `eval_every` iterations, the deterministic evaluation (TensorBoard Eval/...)."""
@@ -133,6 +143,11 @@ def _progress_hook(runner: CheckpointingRunner, console: str, task: str, evaluat
     steps_per_it = runner.cfg["num_steps_per_env"] * runner.env.num_envs * logger.gpu_world_size
     last_eval: dict[str, float] = {}
     eval_time = [0.0]
+    best = [math.inf]
+    previous = os.path.join(logger.log_dir or "", BEST_CHECKPOINT)
+    if logger.log_dir and os.path.isfile(previous):  # a resume competes with the run's best so far
+        with contextlib.suppress(RuntimeError, KeyError, TypeError, ValueError, OSError):
+            best[0] = float(torch.load(previous, weights_only=True)["infos"]["eval_score"])
 
     def log(**kw):
         if console == "line":
@@ -160,6 +175,13 @@ def _progress_hook(runner: CheckpointingRunner, console: str, task: str, evaluat
             eval_time[0] += time.time() - t0
             for key, value in last_eval.items():
                 logger.writer.add_scalar(f"Eval/{key}", value, it)
+            score = eval_score(last_eval)
+            if score < best[0]:  # keep the policy the evaluation liked best: model_best.pt
+                best[0] = score
+                runner.save(
+                    os.path.join(logger.log_dir, BEST_CHECKPOINT), {"eval": dict(last_eval), "eval_score": score}
+                )
+            logger.writer.add_scalar("Eval/score", score, it)
             logger.writer.add_scalar("Eval/time_share", eval_time[0] / max(logger.tot_time + eval_time[0], 1e-9), it)
         ev = ""
         if last_eval:
