@@ -170,7 +170,8 @@ class CasterOmniEnv(LeggedEnv):
         self.mode_mask = torch.zeros(self.num_envs, 4, device=self.device)
         self.external_modes = False
         self.gait_phase = torch.zeros(self.num_envs, device=self.device)
-        self.history = torch.zeros(self.num_envs, self.cfg.history_length, 42, device=self.device)
+        width = self._proprio().shape[1]  # the state is refreshed before the task's buffers
+        self.history = torch.zeros(self.num_envs, self.cfg.history_length, width, device=self.device)
 
     def _refresh_state(self) -> None:
         super()._refresh_state()

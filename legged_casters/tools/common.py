@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+import yaml
 
 from legged_casters import registry
 from legged_casters.config import ConfigError, apply_overrides, load_yaml
@@ -173,8 +174,6 @@ def find_checkpoint(run_dir: Path, checkpoint: str | None) -> Path:
 
 
 def read_run_info(run_dir: Path) -> dict:
-    import yaml
-
     path = run_dir / RUN_FILE
     if not path.is_file():
         return {}
@@ -252,6 +251,41 @@ def shipped_policy_dir(task: str) -> Path | None:
     """resources/policies/<task>/ when the project ships a trained policy for the task."""
     d = SHIPPED_POLICIES / task
     return d if (d / "policy.pt").is_file() else None
+
+
+@dataclass
+class Export:
+    """An exported policy file with what it was exported for."""
+
+    path: Path
+    meta: dict
+    task: str
+    spec: registry.TaskSpec
+    env_cfg: Any
+    train_cfg: Any
+
+    @property
+    def obs_dim(self) -> int | None:
+        return (self.meta.get("observation") or {}).get("dim")
+
+
+def read_export(path: Path, task_arg: str | None) -> Export:
+    """policy.pt / policy.onnx -> its policy.yaml, task and configs: the ones next to it
+    (a shipped policy) or its run's (<run>/exported/), else the task's defaults."""
+    meta_path = path.with_suffix(".yaml")
+    try:
+        meta = (yaml.safe_load(meta_path.read_text()) or {}) if meta_path.is_file() else {}
+    except yaml.YAMLError as err:
+        raise UsageError(f"{meta_path} is not valid YAML: {str(err).splitlines()[0]}") from None
+    if not isinstance(meta, dict):
+        raise UsageError(f"{meta_path}: not a policy description (a YAML mapping)")
+    task = task_arg or meta.get("task") or default_task()
+    if meta.get("task") and meta["task"] != task:
+        raise UsageError(f"{path} was exported for task {meta['task']!r}, not {task!r}")
+    spec = check_task(task)
+    cfg_dir = next((d for d in (path.parent, path.parent.parent) if (d / "env.yaml").is_file()), None)
+    env_cfg, train_cfg = run_configs(spec, cfg_dir)
+    return Export(path, meta, task, spec, env_cfg, train_cfg)
 
 
 def run_configs(spec: registry.TaskSpec, run_dir: Path | None) -> tuple[Any, Any]:

@@ -140,6 +140,27 @@ class ScenarioResult:
     extra: dict[str, float] = field(default_factory=dict)
 
 
+def _schedule(scenarios, owner: list[int], steps: int, dt: float, ranges: dict, gen: torch.Generator):
+    """Each env's command at every step (steps, n, 3), and whether its scenario is still
+    running (steps, n). Random scenarios redraw from the task's ranges every 5 s."""
+    n = len(owner)
+    cmds = torch.zeros(steps, n, 3)
+    times = torch.arange(steps) * dt
+    block = int(round(5.0 / dt))
+    for j, i in enumerate(owner):
+        s = scenarios[i]
+        if s.random_commands:
+            for k0 in range(0, steps, block):
+                for c, key in enumerate(("lin_vel_x", "lin_vel_y", "ang_vel_yaw")):
+                    lo, hi = ranges[key]
+                    cmds[k0 : k0 + block, j, c] = lo + (hi - lo) * torch.rand(1, generator=gen).item()
+        else:
+            for start, c in s.segments:
+                cmds[times >= start, j] = torch.tensor(c, dtype=torch.float32)
+    alive = times.unsqueeze(1) <= torch.tensor([scenarios[i].duration for i in owner]).unsqueeze(0)
+    return cmds, alive
+
+
 def run_scenarios(env, policy: Policy, scenarios=QUICK, seed: int = 0) -> list[ScenarioResult]:
     """Run `policy` (TensorDict obs -> actions) on `env` (an evaluation env with one env
     per scenario copy) through `scenarios`; return one result per scenario."""
@@ -150,54 +171,34 @@ def run_scenarios(env, policy: Policy, scenarios=QUICK, seed: int = 0) -> list[S
         raise ValueError(f"the evaluation env has {n} envs, the scenarios need {len(owner)}")
     owner_t = torch.tensor(owner, device=dev)
     gen = torch.Generator().manual_seed(seed)
-    ranges = env.command_ranges
-    modes_ok = hasattr(env, "set_mode")
-    if modes_ok:
+    if hasattr(env, "set_mode"):
         for i, s in enumerate(scenarios):
             env.set_mode(s.mode, (owner_t == i).nonzero().flatten())
     env.set_commands(torch.zeros(n, 3))
     obs = env.reset()
-    obs = env.get_observations()
     steps = int(round(max(s.duration for s in scenarios) / env.dt))
-    random_cmd = torch.zeros(n, 3)
+    cmds_all, alive = _schedule(scenarios, owner, steps, env.dt, env.command_ranges, gen)
+    random_ids = torch.tensor([j for j, i in enumerate(owner) if scenarios[i].random_commands], dtype=torch.long)
     push_every = int(round(PUSH_INTERVAL_S / env.dt))
     vel_log = torch.zeros(steps, n, 3)
     swivel_log = torch.zeros(steps, n, 4) if hasattr(env, "swivel_vel") else None
     falls = torch.zeros(n, dtype=torch.long)
-    alive = torch.ones(n, dtype=torch.bool)  # a scenario copy counts until it ends
-    cmds_all = torch.zeros(steps, n, 3)
     for k in range(steps):
-        t = k * env.dt
-        cmd = torch.zeros(n, 3)
-        for j, i in enumerate(owner):
-            s = scenarios[i]
-            if t > s.duration:
-                alive[j] = False
-            if s.random_commands:
-                if k % int(round(5.0 / env.dt)) == 0:
-                    for c, key in enumerate(("lin_vel_x", "lin_vel_y", "ang_vel_yaw")):
-                        lo, hi = ranges[key]
-                        random_cmd[j, c] = lo + (hi - lo) * torch.rand(1, generator=gen).item()
-                cmd[j] = random_cmd[j]
-            else:
-                cmd[j] = torch.tensor(s.command(t))
-        cmds_all[k] = cmd
+        cmd = cmds_all[k]
         changed = not torch.equal(env.commands.cpu(), cmd)
         env.commands[:] = cmd.to(dev)
         if changed:  # the policy sees a new command at once, not one step late
             obs = env.compute_observations()
-        if k and k % push_every == 0:
-            rnd = [j for j, i in enumerate(owner) if scenarios[i].random_commands]
-            if rnd:
-                ids = torch.tensor(rnd, device=dev)
-                qvel = env.sim.qvel[ids].clone()
-                qvel[:, 0:2] += (torch.rand(len(rnd), 2, generator=gen).to(dev) * 2 - 1) * PUSH_VEL
-                env.sim.reset(ids, env.sim.qpos[ids].clone(), qvel)
+        if k and k % push_every == 0 and len(random_ids):
+            ids = random_ids.to(dev)
+            qvel = env.sim.qvel[ids].clone()
+            qvel[:, 0:2] += (torch.rand(len(ids), 2, generator=gen).to(dev) * 2 - 1) * PUSH_VEL
+            env.sim.reset(ids, env.sim.qpos[ids].clone(), qvel)
         with torch.no_grad():
             actions = policy(obs)
-        obs, _, dones, _ = env.step(actions)
+        obs = env.step(actions)[0]
         fell = (env.terminated_buf & ~env.time_out_buf).cpu()
-        falls += (fell & alive).long()
+        falls += (fell & alive[k]).long()
         vel_log[k] = torch.cat([env.base_lin_vel[:, :2], env.base_ang_vel[:, 2:3]], dim=1).cpu()
         if swivel_log is not None:
             swivel_log[k] = env.swivel_vel.cpu()
@@ -336,33 +337,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _load_exported(path: Path, task_arg: str | None):
-    """An exported policy.pt (or its folder) -> (task, spec, env cfg, policy, label). The
-    env config is the export folder's env.yaml (shipped policies), else its run's."""
-    import yaml
-
+    """An exported policy.pt (or its folder) -> (task, spec, env cfg, policy, label, obs dim)."""
     file = path / "policy.pt" if path.is_dir() else path
     if not file.is_file() or file.suffix != ".pt":
         raise UsageError(f"--policy {path}: expected an exported folder with policy.pt, or a policy.pt file")
-    meta_path = file.with_suffix(".yaml")
-    try:
-        meta = (yaml.safe_load(meta_path.read_text()) or {}) if meta_path.is_file() else {}
-    except yaml.YAMLError as err:
-        raise UsageError(f"{meta_path} is not valid YAML: {str(err).splitlines()[0]}") from None
-    if not isinstance(meta, dict):
-        raise UsageError(f"{meta_path}: not a policy description (a YAML mapping)")
-    task = task_arg or meta.get("task") or common.default_task()
-    if meta.get("task") and meta["task"] != task:
-        raise UsageError(f"{file} was exported for task {meta['task']!r}, not {task!r}")
-    spec = common.check_task(task)
-    cfg_dir = next((d for d in (file.parent, file.parent.parent) if (d / "env.yaml").is_file()), None)
-    env_cfg, _ = common.run_configs(spec, cfg_dir)
+    exp = common.read_export(file, task_arg)
     try:
         module = torch.jit.load(str(file), map_location="cpu").eval()
     except RuntimeError as err:
         first = str(err).splitlines()[0] if str(err) else type(err).__name__
         raise common.CheckpointError(f"{file} could not be loaded as a TorchScript policy: {first}") from None
-    dim = (meta.get("observation") or {}).get("dim")
-    return task, spec, env_cfg, (lambda obs: module(obs["policy"])), f"{file}", dim
+    return exp.task, exp.spec, exp.env_cfg, (lambda obs: module(obs["policy"])), f"{file}", exp.obs_dim
 
 
 def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:

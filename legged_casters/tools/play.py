@@ -23,7 +23,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import yaml
 
 from legged_casters.robot import build, go2
 from legged_casters.tools import common, render
@@ -110,17 +109,8 @@ def _resolve_source(args: argparse.Namespace, default_log_root: Path | None) -> 
         raise UsageError(f"--policy {args.policy!r}: expected zero, random, or an exported policy.pt / policy.onnx")
     if not path.is_file():
         raise UsageError(f"--policy {path}: no such file")
-    meta_path = path.with_suffix(".yaml")
-    meta = {}
-    if meta_path.is_file():
-        meta = yaml.safe_load(meta_path.read_text()) or {}
-    task = args.task or meta.get("task") or common.default_task()
-    if meta.get("task") and meta["task"] != task:
-        raise UsageError(f"{path} was exported for task {meta['task']!r}, not {task!r}")
-    spec = common.check_task(task)
-    # An export plays with the configs next to it (a shipped policy) or its run's (<run>/exported/).
-    cfg_dir = next((d for d in (path.parent, path.parent.parent) if (d / "env.yaml").is_file()), None)
-    env_cfg, train_cfg = common.run_configs(spec, cfg_dir)
+    exp = common.read_export(path, args.task)
+    task, spec, env_cfg, train_cfg = exp.task, exp.spec, exp.env_cfg, exp.train_cfg
     shipped = path.resolve().parent.parent == common.SHIPPED_POLICIES
     if args.out:
         out = Path(args.out)
@@ -129,8 +119,7 @@ def _resolve_source(args: argparse.Namespace, default_log_root: Path | None) -> 
     else:
         out = path.parent / "play"
     kind = "torchscript" if path.suffix == ".pt" else "onnx"
-    dim = (meta.get("observation") or {}).get("dim")
-    return PolicySource(kind, task, spec, env_cfg, train_cfg, out, path.stem, path=path, obs_dim=dim)
+    return PolicySource(kind, task, spec, env_cfg, train_cfg, out, path.stem, path=path, obs_dim=exp.obs_dim)
 
 
 def _make_policy(src: PolicySource, env) -> Callable:
