@@ -1,7 +1,8 @@
 """Actor models beyond rsl_rl's own: an MLP whose mean adds a fixed trajectory prior.
 
-`PriorMLPModel` is rsl_rl's MLPModel with one change: the skating prior
-(`legged_casters.envs.gait.GaitPrior`, computed from the raw policy observation) is
+`PriorMLPModel` is rsl_rl's MLPModel with one change: a prior computed from the raw
+policy observation (the caster robot's skating prior `legged_casters.envs.gait.GaitPrior`
+or the wheel robot's drive feedforward `legged_casters.envs.drive.DrivePrior`) is
 added to the MLP output before the Gaussian head. PPO therefore learns a residual
 around the prior, its exploration noise is centred on the prior's motion, and the
 deterministic actor (and its export) is prior + MLP: the robot side runs one network.
@@ -14,7 +15,18 @@ from rsl_rl.models import MLPModel
 from rsl_rl.utils import unpad_trajectories
 from tensordict import TensorDict
 
+from legged_casters.envs.drive import DrivePrior
 from legged_casters.envs.gait import GaitPrior
+
+PRIORS = {"gait": GaitPrior, "drive": DrivePrior}
+"""prior["kind"] -> module; a prior without a kind is the caster gait prior (older runs)."""
+
+
+def make_prior(prior: dict) -> torch.nn.Module:
+    kind = prior.get("kind", "gait")
+    if kind not in PRIORS:
+        raise ValueError(f"unknown actor prior kind {kind!r}; expected one of {sorted(PRIORS)}")
+    return PRIORS[kind](prior["cfg"], prior["slices"], prior["action_scale"])
 
 
 class PriorMLPModel(MLPModel):
@@ -26,7 +38,7 @@ class PriorMLPModel(MLPModel):
                 f"input is the {output_dim} action means (e.g. rsl_rl's GaussianDistribution), got "
                 f"{type(self.distribution).__name__} with input {self.distribution.input_dim}"
             )
-        self.prior = GaitPrior(prior["cfg"], prior["slices"], prior["action_scale"])
+        self.prior = make_prior(prior)
 
     def as_jit(self):
         raise NotImplementedError("rsl_rl's JIT export would drop the prior: use export.py (DeployedPolicy)")

@@ -178,6 +178,7 @@ SCHEMA_KEYS = [
     "task",
     "robot",
     "joint_names",
+    "joint_control",
     "default_joint_pos",
     "action_scale",
     "clip_actions",

@@ -161,7 +161,7 @@ def test_protocol_roundtrip_and_typed_rejections():
 
     good = st.encode()
     cases = {
-        "malformed": [good[:-1], good + b"\0", b"", b"\x00" * P.RobotState.SIZE, cmd.encode()],
+        "malformed": [good[:-1], good + b"\0", b"", b"\x00" * P.RobotState.size(), cmd.encode()],
         "version": [good[:2] + bytes([P.VERSION + 1]) + good[3:]],
         "nonfinite": [],
         "out_of_range": [],
@@ -598,7 +598,7 @@ def test_malformed_flood_is_counted_and_publishes_nothing(tmp_path, realtime):
             elif kind == 1:
                 send(pub_state, valid[: int(rng.integers(0, len(valid)))], "malformed")
             elif kind == 2:
-                send(pub_state, valid[:2] + bytes([int(rng.integers(2, 256))]) + valid[3:], "version")
+                send(pub_state, valid[:2] + bytes([int(rng.integers(P.VERSION + 1, 256))]) + valid[3:], "version")
             elif kind == 3:
                 x = standing_state(robot)
                 x.dq[int(rng.integers(12))] = rng.choice([np.nan, np.inf, -np.inf])

@@ -24,8 +24,9 @@ def test_sizes(caster_model, point_model):
 
 
 @pytest.mark.parametrize("feet", build.FOOT_KINDS)
-def test_actuated_joint_names_order_ranges_and_torque_limits(feet, caster_model, point_model):
-    model = caster_model if feet == "caster" else point_model
+def test_actuated_joint_names_order_ranges_and_torque_limits(feet, models):
+    model = models[feet]
+    assert model.nu == len(go2.action_layout(feet))
     for i, joint in enumerate(go2.ACTUATED_JOINTS):
         act = model.actuator(i)
         assert model.joint(act.trnid[0]).name == joint

@@ -137,12 +137,15 @@ def test_legs_tilt_the_swivel_axis_20_degrees_both_ways_while_standing(caster_mo
 
 
 @pytest.mark.parametrize("feet", build.FOOT_KINDS)
-def test_survives_perturbed_starts_and_random_targets(feet, caster_model, point_model):
+def test_survives_perturbed_starts_and_random_targets(feet, models):
     """Contact settings that are stiff enough for the caster rig can fling the robot
-    or blow up under abuse (docs/caster_physics.md); these must not."""
-    model = caster_model if feet == "caster" else point_model
+    or blow up under abuse (docs/caster_physics.md); these must not. (The wheel
+    robot's wheels get random velocity targets too.)"""
+    model = models[feet]
     data = mujoco.MjData(model)
-    nominal = np.array(go2.default_joint_positions())
+    layout = go2.action_layout(feet)
+    nominal = np.array(layout.default)
+    spread = np.where(layout.position_mask, 0.3, 6.0)  # rad, or rad/s for wheels
     adr = [model.joint(j).qposadr[0] for j in go2.ACTUATED_JOINTS]
     every = int(round(0.02 / model.opt.timestep))
     for seed in range(10):
@@ -154,7 +157,7 @@ def test_survives_perturbed_starts_and_random_targets(feet, caster_model, point_
         data.qvel[:6] = rng.uniform(-0.3, 0.3, 6)
         for i in range(int(1.5 / model.opt.timestep)):
             if i % every == 0:
-                data.ctrl[:] = nominal + rng.normal(0.0, 0.3, 12)
+                data.ctrl[:] = nominal + rng.normal(0.0, 1.0, model.nu) * spread
             mujoco.mj_step(model, data)
             assert data.warning[mujoco.mjtWarning.mjWARN_BADQACC].number == 0, f"seed {seed}: simulation blew up"
             assert data.qpos[2] < 0.6, f"seed {seed}: trunk flung to {data.qpos[2]:.2f} m at t={data.time:.2f}"

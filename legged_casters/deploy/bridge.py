@@ -16,12 +16,14 @@ policy.pt). The control loop and its safety rules (docs/deploy.md has the detail
   ``--clock local`` that thread also takes the control steps, at its own absolute
   deadlines, from the newest state.
 * WAITING: nothing is published until a valid state has arrived.
-* STANDUP: the targets ramp from the measured pose to ``default_joint_pos`` over
-  ``--standup-time`` with the export's gains; then the policy runs (RUNNING).
+* STANDUP: the leg targets ramp from the measured pose to ``default_joint_pos`` over
+  ``--standup-time`` with the export's gains (driving wheels are held still: velocity
+  target 0); then the policy runs (RUNNING).
 * State older than ``--max-state-age-ms`` (default 1.5 control periods) or a
   non-finite policy output: DAMPING (kp = 0, kd = ``--damping-kd``), published every
   control period, latched until an operator reset. A non-finite output is never
-  published. Targets are clipped to ``joint_pos_limits``.
+  published. Targets are clipped to ``joint_pos_limits`` (rad; for a wheel, whose
+  policy action is a velocity target, rad/s).
 * Operator stop: STOPPED (damping), latched until a message with the reset flag;
   reset goes back to WAITING, and the next fresh state starts a new stand-up.
 * Every received payload is decoded and checked (length, magic, version, finite
@@ -105,7 +107,10 @@ class Bridge:
         self.default = meta.default_joint_pos.astype(np.float64)
         self.lo, self.hi = meta.joint_pos_limits[:, 0], meta.joint_pos_limits[:, 1]
         self.kp, self.kd = meta.kp.astype(np.float64), meta.kd.astype(np.float64)
-        self.damp_kd = np.full(12, float(config.damping_kd))
+        self.n = meta.num_joints
+        self.position = meta.position_mask
+        """Position joints (legs) vs velocity joints (wheels: kp 0, a dq target)."""
+        self.damp_kd = np.full(self.n, float(config.damping_kd))
         modes = meta.propulsion_modes
         self.mode_masks = {m: np.asarray(modes[m.key], np.float64) for m in P.PropulsionMode if m.key in modes}
 
@@ -130,7 +135,7 @@ class Bridge:
         # control-thread state
         self.state = P.BridgeState.WAITING
         self.fault = P.Fault.NONE
-        self.last_actions = np.zeros(12, np.float32)
+        self.last_actions = np.zeros(self.n, np.float32)
         self.running_steps = 0
         self.next_stamp: int | None = None
         self.standup_from: np.ndarray | None = None
@@ -157,6 +162,8 @@ class Bridge:
         with self._cv:
             try:
                 msg = P.RobotState.decode(payload)
+                if len(msg.q) != self.n:
+                    raise P.ProtocolError("malformed", f"state has {len(msg.q)} joints, the policy drives {self.n}")
                 self.state_filter.check(msg.header)
             except P.ProtocolError as e:
                 self._reject(e)
@@ -204,15 +211,22 @@ class Bridge:
             self._cv.notify()
 
     # --- outputs ------------------------------------------------------------------------
-    def _send_command(self, mode: P.CommandMode, q, kp, kd, state_seq: int) -> None:
+    def _send_command(self, mode: P.CommandMode, q, kp, kd, state_seq: int, dq=None) -> None:
         h = self.cmd_sender.next_header()
-        self.publish("cmd", P.JointCommand(int(mode), list(q), list(kp), list(kd), state_seq, h).encode())
+        dq = list(dq) if dq is not None else None
+        self.publish("cmd", P.JointCommand(int(mode), list(q), list(kp), list(kd), state_seq, h, dq).encode())
         self.commands_sent += 1
         self.last_cmd_seq = h.seq
 
+    def _clip_q(self, q) -> np.ndarray:
+        """Position joints' targets inside their limits; velocity joints' angles as given
+        (their kp is 0, the angle is only reported)."""
+        q = np.asarray(q, np.float64)
+        return np.where(self.position, np.clip(q, self.lo, self.hi), q)
+
     def _send_damping(self, state_seq: int = 0xFFFFFFFF) -> None:
         q = self._latest.q if self._latest is not None else self.default
-        self._send_command(P.CommandMode.DAMPING, np.clip(q, self.lo, self.hi), np.zeros(12), self.damp_kd, state_seq)
+        self._send_command(P.CommandMode.DAMPING, self._clip_q(q), np.zeros(self.n), self.damp_kd, state_seq)
 
     def status(self) -> P.BridgeStatus:
         with self._cv:
@@ -276,8 +290,9 @@ class Bridge:
             self.standup_step += 1
             n = max(1, int(round(self.cfg.standup_time / self.dt)))
             alpha = min(1.0, self.standup_step / n)
-            q = self.standup_from + alpha * (self.default - self.standup_from)
-            self._send_command(P.CommandMode.STANDUP, np.clip(q, self.lo, self.hi), self.kp, self.kd, seq)
+            q = np.where(self.position, self.standup_from + alpha * (self.default - self.standup_from), msg.q)
+            # Wheels (velocity joints) are held still: dq target 0 with their kd.
+            self._send_command(P.CommandMode.STANDUP, self._clip_q(q), self.kp, self.kd, seq)
             self.rate.step(now)
             if alpha >= 1.0:
                 self._enter(P.BridgeState.RUNNING)
@@ -299,8 +314,8 @@ class Bridge:
             return
         clip = self.meta.clip_actions
         actions = np.clip(actions, -clip, clip)
-        targets = np.clip(self.default + self.meta.action_scale * actions, self.lo, self.hi)
-        self._send_command(P.CommandMode.POLICY, targets, self.kp, self.kd, seq)
+        q_t, dq_t = self.meta.targets(actions, np.asarray(msg.q, np.float64))
+        self._send_command(P.CommandMode.POLICY, q_t, self.kp, self.kd, seq, dq_t)
         self.last_actions[:] = actions
         self.rate.step(now)
 

@@ -19,17 +19,25 @@ from legged_casters.robot import go2
 
 FORMAT_VERSION = 1
 
-TERM_DIMS: dict[str, int] = {
-    "commands": 3,
-    "mode_mask": 4,
-    "ang_vel": 3,
-    "projected_gravity": 3,
-    "joint_pos": 12,
-    "joint_vel": 12,
-    "actions": 12,
-    "gait_phase": 2,
-}
-"""Observation terms the bridge can build from robot state + operator input, with their sizes."""
+JOINT_TERMS = ("joint_pos", "joint_vel", "actions")
+"""Terms with one value per actuated joint (12 or 16 by robot)."""
+
+
+def term_dims(num_joints: int = 12) -> dict[str, int]:
+    """Observation terms the bridge can build from robot state + operator input, with
+    their sizes for a robot with `num_joints` actuated joints."""
+    return {
+        "commands": 3,
+        "mode_mask": 4,
+        "ang_vel": 3,
+        "projected_gravity": 3,
+        **dict.fromkeys(JOINT_TERMS, num_joints),
+        "gait_phase": 2,
+    }
+
+
+TERM_DIMS: dict[str, int] = term_dims()
+"""term_dims of the 12-joint robots."""
 HISTORY_TERM = "proprio_history"
 """A stack of earlier steps' terms (policy.yaml `history`: length, terms, newest first)."""
 
@@ -57,7 +65,8 @@ class PolicyMeta:
     kp: np.ndarray
     kd: np.ndarray
     torque_limits: np.ndarray
-    joint_pos_limits: np.ndarray  # (12, 2)
+    joint_pos_limits: np.ndarray
+    """(n, 2) target limits: rad for position joints, rad/s for velocity joints."""
     control_dt: float
     physics_dt: float
     obs_dim: int
@@ -71,6 +80,29 @@ class PolicyMeta:
     history_terms: tuple[str, ...] = ()
     gait_frequency: float = 0.0
     """Hz of the clock behind the gait_phase term (policy.yaml gait_clock.frequency); 0: none."""
+    joint_control: tuple[str, ...] = ()
+    """Per joint: "position" (target default + action_scale * action, rad) or "velocity"
+    (target velocity_action_scale * action, rad/s, kp 0). Empty: all position (older exports)."""
+    velocity_action_scale: float = 0.0
+
+    @property
+    def num_joints(self) -> int:
+        return len(self.joint_names)
+
+    @property
+    def position_mask(self) -> np.ndarray:
+        control = self.joint_control or (go2.CONTROL_POSITION,) * self.num_joints
+        return np.array([c == go2.CONTROL_POSITION for c in control])
+
+    def targets(self, actions: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(q_target, dq_target) of clipped policy actions: position joints get
+        default + action_scale * action and dq 0; velocity joints hold q (kp is 0)
+        and get dq velocity_action_scale * action; both clipped to joint_pos_limits."""
+        pos = self.position_mask
+        lo, hi = self.joint_pos_limits[:, 0], self.joint_pos_limits[:, 1]
+        q_t = np.where(pos, np.clip(self.default_joint_pos + self.action_scale * actions, lo, hi), q)
+        dq_t = np.where(pos, 0.0, np.clip(self.velocity_action_scale * actions, lo, hi))
+        return q_t, dq_t
 
 
 def _vec(d: dict, key: str, n: int) -> np.ndarray:
@@ -103,14 +135,26 @@ def load_meta(path: str | Path) -> PolicyMeta:
         raise PolicyFormatError(f"{path}: not a YAML mapping")
     if d.get("format_version") != FORMAT_VERSION:
         raise PolicyFormatError(f"{path}: format_version {d.get('format_version')!r}, expected {FORMAT_VERSION}")
+    robot = str(d.get("robot", "caster"))
+    try:
+        layout = go2.action_layout(robot)
+    except ValueError:
+        raise PolicyFormatError(f"{path}: unknown robot {robot!r}; expected 'caster', 'point' or 'wheel'") from None
     names = list(d.get("joint_names") or [])
-    if names != list(go2.ACTUATED_JOINTS):
+    if names != list(layout.joints):
         raise PolicyFormatError(
-            f"{path}: joint_names {names} differ from the robot's joint order {list(go2.ACTUATED_JOINTS)}"
+            f"{path}: joint_names {names} differ from the {robot} robot's joint order {list(layout.joints)}"
+        )
+    n = len(names)
+    control = tuple(str(c) for c in (d.get("joint_control") or (go2.CONTROL_POSITION,) * n))
+    if control != layout.control:
+        raise PolicyFormatError(
+            f"{path}: joint_control {list(control)} differs from the {robot} robot's {list(layout.control)}"
         )
     lims = np.asarray(d.get("joint_pos_limits"), dtype=np.float64)
-    if lims.shape != (12, 2) or not np.all(np.isfinite(lims)) or np.any(lims[:, 0] >= lims[:, 1]):
-        raise PolicyFormatError(f"{path}: joint_pos_limits must be 12 [lo, hi] pairs with lo < hi")
+    if lims.shape != (n, 2) or not np.all(np.isfinite(lims)) or np.any(lims[:, 0] >= lims[:, 1]):
+        raise PolicyFormatError(f"{path}: joint_pos_limits must be {n} [lo, hi] pairs with lo < hi")
+    dims = term_dims(n)  # this robot's term sizes
     obs = d.get("observation") or {}
     terms = []
     for t in obs.get("terms") or []:
@@ -118,17 +162,17 @@ def load_meta(path: str | Path) -> PolicyMeta:
         if name in UNMEASURABLE:
             raise PolicyFormatError(
                 f"{path}: observation term {name!r} cannot be deployed: {UNMEASURABLE[name]}. "
-                f"Known terms: {sorted(TERM_DIMS)}"
+                f"Known terms: {sorted(dims)}"
             )
         if name == HISTORY_TERM:
             terms.append((name, dim, scale))
             continue
-        if name not in TERM_DIMS:
+        if name not in dims:
             raise PolicyFormatError(
-                f"{path}: unknown observation term {name!r}; the bridge can build {sorted([*TERM_DIMS, HISTORY_TERM])}"
+                f"{path}: unknown observation term {name!r}; the bridge can build {sorted([*dims, HISTORY_TERM])}"
             )
-        if dim != TERM_DIMS[name]:
-            raise PolicyFormatError(f"{path}: term {name!r} has dim {dim}, the bridge builds {TERM_DIMS[name]}")
+        if dim != dims[name]:
+            raise PolicyFormatError(f"{path}: term {name!r} has dim {dim}, the bridge builds {dims[name]}")
         if not math.isfinite(scale):
             raise PolicyFormatError(f"{path}: term {name!r} has scale {scale}")
         terms.append((name, dim, scale))
@@ -140,7 +184,7 @@ def load_meta(path: str | Path) -> PolicyMeta:
     modes = {str(k): [float(x) for x in v] for k, v in (d.get("propulsion_modes") or {}).items()}
     if any(len(v) != 4 for v in modes.values()):
         raise PolicyFormatError(f"{path}: propulsion_modes masks must have 4 values")
-    if "mode_mask" in TERM_DIMS and any(t[0] == "mode_mask" for t in terms) and not modes:
+    if any(t[0] == "mode_mask" for t in terms) and not modes:
         raise PolicyFormatError(f"{path}: the policy observes mode_mask but propulsion_modes is empty")
     hist = d.get("history") or {}
     history_length, history_terms = 0, ()
@@ -151,13 +195,13 @@ def load_meta(path: str | Path) -> PolicyMeta:
         except (TypeError, ValueError):
             history_terms, history_length = (), 0
         scaled = {t[0] for t in terms}
-        bad = [t for t in history_terms if t not in TERM_DIMS or t not in scaled]
+        bad = [t for t in history_terms if t not in dims or t not in scaled]
         if history_length < 1 or not history_terms or bad:
             raise PolicyFormatError(
                 f"{path}: the policy observes {HISTORY_TERM} but `history` does not say how to build it "
                 f"(length >= 1 and terms that the policy also observes directly; got {hist!r})"
             )
-        want = history_length * sum(TERM_DIMS[t] for t in history_terms)
+        want = history_length * sum(dims[t] for t in history_terms)
         got = next(t[1] for t in terms if t[0] == HISTORY_TERM)
         if got != want:
             raise PolicyFormatError(f"{path}: {HISTORY_TERM} has dim {got}, its history description gives {want}")
@@ -174,14 +218,14 @@ def load_meta(path: str | Path) -> PolicyMeta:
     meta = PolicyMeta(
         directory=path.parent,
         task=str(d.get("task", "")),
-        robot=str(d.get("robot", "caster")),
+        robot=robot,
         joint_names=names,
-        default_joint_pos=_vec(d, "default_joint_pos", 12),
+        default_joint_pos=_vec(d, "default_joint_pos", n),
         action_scale=_num(d, "action_scale"),
         clip_actions=_num(d, "clip_actions"),
-        kp=_vec(d, "kp", 12),
-        kd=_vec(d, "kd", 12),
-        torque_limits=_vec(d, "torque_limits", 12),
+        kp=_vec(d, "kp", n),
+        kd=_vec(d, "kd", n),
+        torque_limits=_vec(d, "torque_limits", n),
         joint_pos_limits=lims,
         control_dt=_num(d, "control_dt"),
         physics_dt=_num(d, "physics_dt"),
@@ -195,6 +239,8 @@ def load_meta(path: str | Path) -> PolicyMeta:
         gait_frequency=gait_frequency if math.isfinite(gait_frequency) else 0.0,
         history_length=history_length,
         history_terms=history_terms,
+        joint_control=control,
+        velocity_action_scale=_num(d, "velocity_action_scale") if go2.CONTROL_VELOCITY in control else 0.0,
     )
     if np.any(meta.kp < 0) or np.any(meta.kd < 0):
         raise PolicyFormatError(f"{path}: negative gains")
@@ -202,7 +248,7 @@ def load_meta(path: str | Path) -> PolicyMeta:
 
 
 class PolicyRunner:
-    """obs (dim,) float32 -> actions (12,) float32 through ONNX Runtime or TorchScript."""
+    """obs (dim,) float32 -> actions (n,) float32 through ONNX Runtime or TorchScript."""
 
     def __init__(self, meta: PolicyMeta, backend: str = "onnx"):
         self.backend = backend
@@ -231,8 +277,8 @@ class PolicyRunner:
         else:
             raise ValueError(f"backend must be 'onnx' or 'torchscript', got {backend!r}")
         out = self(np.zeros(meta.obs_dim, dtype=np.float32))
-        if out.shape != (12,):
-            raise PolicyFormatError(f"policy output has shape {out.shape}, expected (12,)")
+        if out.shape != (meta.num_joints,):
+            raise PolicyFormatError(f"policy output has shape {out.shape}, expected ({meta.num_joints},)")
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
         x = obs.reshape(1, -1).astype(np.float32, copy=False)
@@ -255,9 +301,11 @@ class ObservationBuilder:
     def __init__(self, meta: PolicyMeta):
         self.meta = meta
         self._buf = np.zeros(meta.obs_dim, dtype=np.float32)
+        self._pos = meta.position_mask
         scales = {name: scale for name, _, scale in meta.obs_terms}
         self._hist_scales = [(t, scales.get(t, 1.0)) for t in meta.history_terms]
-        width = sum(TERM_DIMS[t] for t in meta.history_terms)
+        dims = term_dims(meta.num_joints)
+        width = sum(dims[t] for t in meta.history_terms)
         self._history = np.zeros((meta.history_length, width), dtype=np.float64)
 
     def raw_terms(self, state, commands, mode_mask, last_actions, step: int = 0) -> dict[str, np.ndarray]:
@@ -270,7 +318,8 @@ class ObservationBuilder:
             "mode_mask": np.asarray(mode_mask, dtype=np.float64),
             "ang_vel": np.asarray(state.gyro, dtype=np.float64),
             "projected_gravity": projected_gravity(state.quat),
-            "joint_pos": np.asarray(state.q, dtype=np.float64) - self.meta.default_joint_pos,
+            # A wheel's angle says nothing (it turns freely): velocity joints read 0, as in training.
+            "joint_pos": (np.asarray(state.q, dtype=np.float64) - self.meta.default_joint_pos) * self._pos,
             "joint_vel": np.asarray(state.dq, dtype=np.float64),
             "actions": np.asarray(last_actions, dtype=np.float64),
         }

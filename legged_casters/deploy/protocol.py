@@ -18,8 +18,14 @@ Payloads are little-endian ``struct`` records with a common 20-byte header::
 
 ``epoch`` is a random number a sender draws when it starts, ``seq`` counts that
 sender's messages from 0 and ``stamp_ns`` is the sender's steady (monotonic) clock in
-nanoseconds. All floats are float32, joint arrays are 12 values in the policy's joint
-order (FL, FR, RL, RR x hip, thigh, calf; ``legged_casters.robot.go2.ACTUATED_JOINTS``).
+nanoseconds. All floats are float32. Joint arrays hold ``n`` values (the count is in
+the message) in the policy's joint order, ``legged_casters.robot.go2.action_layout``:
+12 for the caster and point-foot Go2 (FL, FR, RL, RR x hip, thigh, calf), 16 for the
+driving-wheel Go2 (the 12 leg joints, then the FL, FR, RL, RR wheels).
+
+Version 2 (this one) carries ``n`` in the state and command messages and adds a
+velocity target ``dq`` to the command, so that a wheel runs as a velocity servo
+(kp 0, dq target, kd), as on a Go2-W LowCmd. Version 1 had 12 joints and no ``dq``.
 
 Decoding checks the exact length, magic, version and type, that every float is
 finite and that the values are in range; a failure raises :class:`ProtocolError`
@@ -36,8 +42,10 @@ import struct
 from dataclasses import dataclass, field
 
 MAGIC = 0x434C
-VERSION = 1
+VERSION = 2
 NUM_JOINTS = 12
+"""Joints of the caster and point-foot Go2 (the default of the encoders' callers)."""
+MAX_JOINTS = 32
 
 HEADER = struct.Struct("<HBBIIQ")
 HEADER_SIZE = HEADER.size  # 20
@@ -121,7 +129,7 @@ def _check_finite(values, what: str) -> None:
             raise ProtocolError("nonfinite", f"{what} contains {v}")
 
 
-def _decode_header(buf: bytes, mtype: MsgType, size: int) -> Header:
+def _decode_header(buf: bytes, mtype: MsgType, size: int | None) -> Header:
     if not isinstance(buf, bytes | bytearray | memoryview):
         raise ProtocolError("malformed", f"payload is {type(buf).__name__}, not bytes")
     if len(buf) < HEADER_SIZE:
@@ -133,7 +141,7 @@ def _decode_header(buf: bytes, mtype: MsgType, size: int) -> Header:
         raise ProtocolError("version", f"version {version}, this build speaks {VERSION}")
     if t != mtype:
         raise ProtocolError("malformed", f"message type {t}, expected {int(mtype)} ({mtype.name})")
-    if len(buf) != size:
+    if size is not None and len(buf) != size:
         raise ProtocolError("malformed", f"{mtype.name} must be {size} bytes, got {len(buf)}")
     return Header(epoch, seq, stamp)
 
@@ -150,7 +158,22 @@ def _floats(values, n: int, what: str) -> list[float]:
 
 
 # --- robot state -------------------------------------------------------------------------
-_STATE_BODY = struct.Struct(f"<BBxx4f3f{NUM_JOINTS}f{NUM_JOINTS}f")
+_STATE_HEAD = struct.Struct("<BBBx4f3f")
+
+
+def _joint_count(n: int, what: str) -> int:
+    if not 1 <= n <= MAX_JOINTS:
+        raise ProtocolError("malformed", f"{what} has {n} joints (1..{MAX_JOINTS})")
+    return n
+
+
+def _decode_sized(buf: bytes, mtype: MsgType, head: struct.Struct, count_at: int, arrays: int) -> tuple[Header, int]:
+    """Header + joint count of a message whose body is `head` then `arrays` float arrays of n."""
+    _decode_header(buf, mtype, None)  # magic, version, type first
+    if len(buf) < HEADER_SIZE + head.size:
+        raise ProtocolError("malformed", f"{mtype.name} of {len(buf)} bytes is shorter than its fixed part")
+    n = _joint_count(buf[HEADER_SIZE + count_at], mtype.name)
+    return _decode_header(buf, mtype, HEADER_SIZE + head.size + 4 * arrays * n), n
 
 
 @dataclass
@@ -158,9 +181,9 @@ class RobotState:
     """Robot -> bridge: what a Go2 LowState carries that the policy needs.
 
     quat: IMU orientation (w, x, y, z), trunk to world; gyro: IMU angular velocity in
-    the trunk frame (rad/s); q / dq: joint angles (rad) and velocities (rad/s);
-    robot_mode: the CommandMode the robot is applying (NONE, HOLD or DAMPING when its
-    own watchdog fired); flags: reserved, 0.
+    the trunk frame (rad/s); q / dq: joint angles (rad) and velocities (rad/s), n of
+    each; robot_mode: the CommandMode the robot is applying (NONE, HOLD or DAMPING when
+    its own watchdog fired); flags: reserved, 0.
     """
 
     quat: list[float]
@@ -171,25 +194,25 @@ class RobotState:
     flags: int = 0
     header: Header = field(default_factory=Header)
 
-    SIZE = HEADER_SIZE + _STATE_BODY.size
+    @staticmethod
+    def size(n: int = NUM_JOINTS) -> int:
+        return HEADER_SIZE + _STATE_HEAD.size + 8 * n
 
     def encode(self) -> bytes:
-        body = _STATE_BODY.pack(
-            int(self.robot_mode),
-            int(self.flags),
-            *_floats(self.quat, 4, "quat"),
-            *_floats(self.gyro, 3, "gyro"),
-            *_floats(self.q, NUM_JOINTS, "q"),
-            *_floats(self.dq, NUM_JOINTS, "dq"),
+        n = len(self.q)
+        body = _STATE_HEAD.pack(
+            int(self.robot_mode), int(self.flags), n, *_floats(self.quat, 4, "quat"), *_floats(self.gyro, 3, "gyro")
         )
-        return _pack_header(MsgType.STATE, self.header) + body
+        arrays = struct.pack(f"<{2 * n}f", *_floats(self.q, n, "q"), *_floats(self.dq, n, "dq"))
+        return _pack_header(MsgType.STATE, self.header) + body + arrays
 
     @classmethod
     def decode(cls, buf: bytes) -> RobotState:
-        h = _decode_header(buf, MsgType.STATE, cls.SIZE)
-        v = _STATE_BODY.unpack_from(buf, HEADER_SIZE)
-        mode, flags, floats = v[0], v[1], v[2:]
-        _check_finite(floats, "state")
+        h, n = _decode_sized(buf, MsgType.STATE, _STATE_HEAD, 2, 2)
+        v = _STATE_HEAD.unpack_from(buf, HEADER_SIZE)
+        mode, flags, floats = v[0], v[1], v[3:]
+        joints = struct.unpack_from(f"<{2 * n}f", buf, HEADER_SIZE + _STATE_HEAD.size)
+        _check_finite(floats + joints, "state")
         if mode not in CommandMode._value2member_map_:
             raise ProtocolError("out_of_range", f"robot_mode {mode}")
         quat = list(floats[0:4])
@@ -199,8 +222,8 @@ class RobotState:
         return cls(
             quat=quat,
             gyro=list(floats[4:7]),
-            q=list(floats[7 : 7 + NUM_JOINTS]),
-            dq=list(floats[7 + NUM_JOINTS :]),
+            q=list(joints[:n]),
+            dq=list(joints[n:]),
             robot_mode=mode,
             flags=flags,
             header=h,
@@ -208,16 +231,19 @@ class RobotState:
 
 
 # --- joint command -----------------------------------------------------------------------
-_CMD_BODY = struct.Struct(f"<BxxxI{NUM_JOINTS}f{NUM_JOINTS}f{NUM_JOINTS}f")
+_CMD_HEAD = struct.Struct("<BBxxI")
 
 
 @dataclass
 class JointCommand:
-    """Bridge -> robot: per-joint PD targets, like a Go2 LowCmd's motor_cmd[i].q/kp/kd.
+    """Bridge -> robot: per-joint targets and gains, like a Go2 LowCmd's motor_cmd[i]
+    q / dq / kp / kd.
 
-    The robot applies tau = kp (q_target - q) - kd dq, clipped to its torque limits.
-    mode: CommandMode (POLICY, DAMPING, STANDUP); state_seq: seq of the RobotState
-    the command was computed from (0xFFFFFFFF when none, e.g. damping on a timer).
+    The robot applies tau = kp (q_target - q) + kd (dq_target - dq), clipped to its
+    torque limits: a leg joint is a position servo (dq_target 0), a wheel a velocity
+    servo (kp 0). mode: CommandMode (POLICY, DAMPING, STANDUP); state_seq: seq of the
+    RobotState the command was computed from (0xFFFFFFFF when none, e.g. damping on a
+    timer). dq None: zeros.
     """
 
     mode: int
@@ -226,33 +252,40 @@ class JointCommand:
     kd: list[float]
     state_seq: int = 0xFFFFFFFF
     header: Header = field(default_factory=Header)
+    dq: list[float] | None = None
 
-    SIZE = HEADER_SIZE + _CMD_BODY.size
+    @staticmethod
+    def size(n: int = NUM_JOINTS) -> int:
+        return HEADER_SIZE + _CMD_HEAD.size + 16 * n
 
     def encode(self) -> bytes:
-        q = _floats(self.q, NUM_JOINTS, "q")
-        kp = _floats(self.kp, NUM_JOINTS, "kp")
-        kd = _floats(self.kd, NUM_JOINTS, "kd")
-        for v in q + kp + kd:
+        n = len(self.q)
+        q = _floats(self.q, n, "q")
+        dq = _floats(self.dq if self.dq is not None else [0.0] * n, n, "dq")
+        kp = _floats(self.kp, n, "kp")
+        kd = _floats(self.kd, n, "kd")
+        for v in q + dq + kp + kd:
             if not math.isfinite(v):
                 raise ValueError("refusing to encode a joint command with non-finite values")
-        return _pack_header(MsgType.COMMAND, self.header) + _CMD_BODY.pack(
-            int(self.mode), self.state_seq & 0xFFFFFFFF, *q, *kp, *kd
+        return (
+            _pack_header(MsgType.COMMAND, self.header)
+            + _CMD_HEAD.pack(int(self.mode), _joint_count(n, "command"), self.state_seq & 0xFFFFFFFF)
+            + struct.pack(f"<{4 * n}f", *q, *dq, *kp, *kd)
         )
 
     @classmethod
     def decode(cls, buf: bytes) -> JointCommand:
-        h = _decode_header(buf, MsgType.COMMAND, cls.SIZE)
-        v = _CMD_BODY.unpack_from(buf, HEADER_SIZE)
-        mode, state_seq, floats = v[0], v[1], v[2:]
+        h, n = _decode_sized(buf, MsgType.COMMAND, _CMD_HEAD, 1, 4)
+        mode, _, state_seq = _CMD_HEAD.unpack_from(buf, HEADER_SIZE)
+        floats = struct.unpack_from(f"<{4 * n}f", buf, HEADER_SIZE + _CMD_HEAD.size)
         _check_finite(floats, "command")
         if mode not in (CommandMode.POLICY, CommandMode.DAMPING, CommandMode.STANDUP):
             raise ProtocolError("out_of_range", f"command mode {mode}")
-        n = NUM_JOINTS
-        q, kp, kd = list(floats[:n]), list(floats[n : 2 * n]), list(floats[2 * n :])
+        q, dq = list(floats[:n]), list(floats[n : 2 * n])
+        kp, kd = list(floats[2 * n : 3 * n]), list(floats[3 * n :])
         if min(kp) < 0.0 or min(kd) < 0.0:
             raise ProtocolError("out_of_range", "negative gain")
-        return cls(mode=mode, q=q, kp=kp, kd=kd, state_seq=state_seq, header=h)
+        return cls(mode=mode, q=q, kp=kp, kd=kd, state_seq=state_seq, header=h, dq=dq)
 
 
 # --- operator ----------------------------------------------------------------------------

@@ -11,10 +11,12 @@ step it
    (``imu_quat``, ``imu_gyro``, ``<joint>_pos``, ``<joint>_vel``), stamped with the
    step's scheduled time on the monotonic clock;
 2. computes the joint torques from the newest joint command,
-   ``tau = kp (q_target - q) - kd dq``, clipped to the Go2 torque limits, and
-   integrates (``mj_step2``).
+   ``tau = kp (q_target - q) + kd (dq_target - dq)``, clipped to the torque limits,
+   and integrates (``mj_step2``).
 
-PD choice: the MJCF's position actuators (fixed Kp 60 / Kd 1.5) are turned into
+The joints are the robot's action layout (``go2.action_layout``): 12 leg joints, and
+for ``--robot wheel`` the 4 wheels after them. PD choice: the MJCF's actuators
+(position servos for the legs, velocity servos for the wheels) are turned into
 plain torque motors at load time (gain 1, no bias, no control range; their
 ``forcerange`` still clips at the torque limits), and ``ctrl`` is set to the torque
 computed above from each message's own kp / kd. The ``<joint>_torque`` sensors keep
@@ -70,7 +72,9 @@ class SimRobot:
         self.watchdog = watchdog
         self.startup = startup
 
-        act = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, j.replace("_joint", "")) for j in go2.ACTUATED_JOINTS]
+        layout = go2.action_layout(robot)
+        self.n = len(layout)
+        act = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, build.actuator_name(j)) for j in layout.joints]
         if min(act) < 0:
             raise ValueError("model lacks an actuator named like FL_hip")
         self.act = np.asarray(act)
@@ -78,8 +82,8 @@ class SimRobot:
         m.actuator_gainprm[self.act, 0] = 1.0
         m.actuator_biasprm[self.act, :] = 0.0
         m.actuator_ctrllimited[self.act] = 0
-        self.tau_limit = np.asarray(go2.torque_limits())
-        jid = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, j) for j in go2.ACTUATED_JOINTS]
+        self.tau_limit = np.asarray(layout.torque_limits)
+        jid = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, j) for j in layout.joints]
         self.qadr = m.jnt_qposadr[jid]
         self.dadr = m.jnt_dofadr[jid]
         sl = {}
@@ -87,12 +91,13 @@ class SimRobot:
             name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_SENSOR, i)
             sl[name] = slice(int(m.sensor_adr[i]), int(m.sensor_adr[i] + m.sensor_dim[i]))
         self._quat, self._gyro = sl["imu_quat"], sl["imu_gyro"]
-        self._qs = np.concatenate([np.arange(sl[f"{j}_pos"].start, sl[f"{j}_pos"].stop) for j in go2.ACTUATED_JOINTS])
-        self._dqs = np.concatenate([np.arange(sl[f"{j}_vel"].start, sl[f"{j}_vel"].stop) for j in go2.ACTUATED_JOINTS])
+        self._qs = np.concatenate([np.arange(sl[f"{j}_pos"].start, sl[f"{j}_pos"].stop) for j in layout.joints])
+        self._dqs = np.concatenate([np.arange(sl[f"{j}_vel"].start, sl[f"{j}_vel"].stop) for j in layout.joints])
 
         self.hold_q = self.data.qpos[self.qadr].copy()
-        self.hold_kp, self.hold_kd = np.asarray(go2.kp()), np.asarray(go2.kd())
-        self.damp_kd = np.full(12, float(damping_kd))
+        self.hold_kp, self.hold_kd = np.asarray(layout.kp), np.asarray(layout.kd)
+        self.damp_kd = np.full(self.n, float(damping_kd))
+        self._zeros = np.zeros(self.n)
 
         self._lock = threading.Lock()
         self._cmd: P.JointCommand | None = None
@@ -116,6 +121,8 @@ class SimRobot:
         now = time.monotonic()
         try:
             msg = P.JointCommand.decode(payload)
+            if len(msg.q) != self.n:
+                raise P.ProtocolError("malformed", f"command for {len(msg.q)} joints, this robot has {self.n}")
             with self._lock:
                 self.cmd_filter.check(msg.header)
                 self._cmd, self._cmd_arrival = msg, now
@@ -125,31 +132,34 @@ class SimRobot:
                 self.rejected[e.reason] += 1
 
     # --- physics ---------------------------------------------------------------------
-    def _gains(self, now: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, P.CommandMode]:
+    def _gains(self, now: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, P.CommandMode]:
+        """(q target, dq target, kp, kd, mode) to apply now."""
         with self._lock:
             cmd, arrival = self._cmd, self._cmd_arrival
+        z = self._zeros
         if cmd is None:
             if self.startup == "hold":
-                return self.hold_q, self.hold_kp, self.hold_kd, P.CommandMode.HOLD
-            return self.hold_q, np.zeros(12), self.damp_kd, P.CommandMode.DAMPING
+                return self.hold_q, z, self.hold_kp, self.hold_kd, P.CommandMode.HOLD
+            return self.hold_q, z, z, self.damp_kd, P.CommandMode.DAMPING
         if now - arrival > self.watchdog:
-            return self.hold_q, np.zeros(12), self.damp_kd, P.CommandMode.DAMPING
+            return self.hold_q, z, z, self.damp_kd, P.CommandMode.DAMPING
         q = np.asarray(cmd.q)
         if cmd.mode == P.CommandMode.DAMPING:
-            return q, np.zeros(12), np.asarray(cmd.kd), P.CommandMode.DAMPING
-        return q, np.asarray(cmd.kp), np.asarray(cmd.kd), P.CommandMode(cmd.mode)
+            return q, z, z, np.asarray(cmd.kd), P.CommandMode.DAMPING
+        dq = np.asarray(cmd.dq) if cmd.dq is not None else z
+        return q, dq, np.asarray(cmd.kp), np.asarray(cmd.kd), P.CommandMode(cmd.mode)
 
     def step(self, now: float, stamp_ns: int) -> None:
         m, d = self.model, self.data
         mujoco.mj_step1(m, d)
         if self.steps % self.decimation == 0 and self.publish_state.is_set():
             self._publish_state(stamp_ns)
-        q_t, kp, kd, mode = self._gains(now)
+        q_t, dq_t, kp, kd, mode = self._gains(now)
         if mode != self.mode:
             self.mode = mode
             self.mode_changes.append((now, mode))
         q, dq = d.qpos[self.qadr], d.qvel[self.dadr]
-        tau = kp * (q_t - q) - kd * dq
+        tau = kp * (q_t - q) + kd * (dq_t - dq)
         d.ctrl[self.act] = np.clip(tau, -self.tau_limit, self.tau_limit)
         mujoco.mj_step2(m, d)
         self.steps += 1

@@ -69,7 +69,9 @@ class LeggedEnv(VecEnv):
             set_timestep(self.model, cfg.sim.timestep)
         self.sim = make_backend(self.backend_kind, self.model, num_envs, cfg.sim.decimation, self.device)
         self.num_envs = num_envs
-        self.num_actions = len(go2.ACTUATED_JOINTS)
+        self.layout = go2.action_layout(cfg.robot)
+        """What each action drives (joints, position/velocity control, gains, limits)."""
+        self.num_actions = len(self.layout)
         self.dt = self.sim.control_dt
         self.max_episode_length = int(math.ceil(cfg.episode_length_s / self.dt))
         self._init_indices()
@@ -82,18 +84,33 @@ class LeggedEnv(VecEnv):
     # --- set-up ----------------------------------------------------------------------
     def _init_indices(self) -> None:
         m, dev = self.model, self.device
-        joints = [m.joint(j) for j in go2.ACTUATED_JOINTS]
+        layout = self.layout
+        joints = [m.joint(j) for j in layout.joints]
         self.joint_qadr = torch.tensor([j.qposadr[0] for j in joints], device=dev)
         self.joint_dadr = torch.tensor([j.dofadr[0] for j in joints], device=dev)
         key = m.key(build.STAND_KEY).id
         self.nominal_qpos = torch.tensor(m.key_qpos[key], dtype=torch.float32, device=dev)
-        self.default_joint_pos = torch.tensor(go2.default_joint_positions(), device=dev)
-        ranges = torch.tensor(go2.joint_ranges(), device=dev)
+        self.default_joint_pos = torch.tensor(layout.default, device=dev)
+        self.position_joints = torch.tensor(layout.position_mask, device=dev)
+        """(num_actions,) bool: position-controlled (legs) vs velocity-controlled (wheels)."""
+        ctl = self.cfg.control
+        self.action_scales = torch.where(
+            self.position_joints, torch.tensor(ctl.action_scale), torch.tensor(ctl.velocity_action_scale)
+        ).to(dev)
+        ranges = torch.tensor(layout.ranges, device=dev)
         mid, half = ranges.mean(1), (ranges[:, 1] - ranges[:, 0]) / 2
         soft = self.cfg.rewards.soft_joint_pos_limit
-        self.soft_joint_limits = torch.stack([mid - soft * half, mid + soft * half], dim=1)
-        self.joint_vel_limits = torch.tensor(go2.velocity_limits(), device=dev)
-        self.torque_limits = torch.tensor(go2.torque_limits(), device=dev)
+        # Velocity joints turn freely: their position limits are +-inf.
+        inf = torch.full_like(mid, float("inf"))
+        self.soft_joint_limits = torch.stack(
+            [
+                torch.where(self.position_joints, mid - soft * half, -inf),
+                torch.where(self.position_joints, mid + soft * half, inf),
+            ],
+            dim=1,
+        )
+        self.joint_vel_limits = torch.tensor(layout.velocity_limits, device=dev)
+        self.torque_limits = torch.tensor(layout.torque_limits, device=dev)
         self.trunk_id = m.body(go2.TRUNK_BODY).id
         self._sensor_cols: dict[tuple[str, ...], torch.Tensor] = {}
         self._kin_data: mujoco.MjData | None = None
@@ -197,7 +214,7 @@ class LeggedEnv(VecEnv):
         self.projected_gravity = quat_rotate_inverse(self.base_quat, gravity)
         self.joint_pos = qpos[:, self.joint_qadr]
         self.joint_vel = qvel[:, self.joint_dadr]
-        self.torques = self.sensor_values(tuple(f"{j}_torque" for j in go2.ACTUATED_JOINTS))
+        self.torques = self.sensor_values(tuple(f"{j}_torque" for j in self.layout.joints))
 
     # --- stepping ---------------------------------------------------------------------
     def get_observations(self) -> TensorDict:
@@ -221,7 +238,7 @@ class LeggedEnv(VecEnv):
         actions = actions.to(self.device)
         bad_actions = ~torch.isfinite(actions).all(dim=1)
         self.actions[:] = torch.nan_to_num(actions, nan=0.0, posinf=0.0, neginf=0.0).clamp(-clip, clip)
-        targets = self.default_joint_pos + self.cfg.control.action_scale * self.actions
+        targets = self.action_targets(self.actions)
         self._maybe_push()
         self.sim.step(targets)
         self.episode_length_buf += 1
@@ -242,6 +259,11 @@ class LeggedEnv(VecEnv):
         self.last_joint_vel[:] = self.joint_vel
         self.extras["time_outs"] = self.time_out_buf.clone()
         return self.obs_buf, self.rew_buf.clone(), self.reset_buf.clone(), self.extras
+
+    def action_targets(self, actions: torch.Tensor) -> torch.Tensor:
+        """Actuator controls for `actions`: joint angles (rad) for position joints,
+        wheel rates (rad/s) for velocity joints."""
+        return self.default_joint_pos + self.action_scales * actions
 
     def _after_observations(self) -> None:
         """Task hook: after each step's observation (e.g. to record a history)."""
@@ -330,7 +352,8 @@ class LeggedEnv(VecEnv):
         n = len(env_ids)
         qpos = self.nominal_qpos.expand(n, -1).clone()
         init = self.cfg.init_state
-        qpos[:, self.joint_qadr] += _uniform(-init.joint_pos_noise, init.joint_pos_noise, (n, 12), self.device)
+        noise = _uniform(-init.joint_pos_noise, init.joint_pos_noise, (n, self.num_actions), self.device)
+        qpos[:, self.joint_qadr] += noise * self.position_joints
         if init.random_yaw:
             qpos[:, 3:7] = quat_from_yaw(_uniform(-math.pi, math.pi, (n,), self.device))
         self._lift_to_floor(qpos)
@@ -445,6 +468,9 @@ class LeggedEnv(VecEnv):
             bias = torch.tensor(m.actuator_biasprm, dtype=torch.float32, device=dev).expand(n, -1, -1).clone()
             kp_scale = _uniform(*dr.kp_scale_range, (n, m.nu), dev)
             kd_scale = _uniform(*dr.kd_scale_range, (n, m.nu), dev)
+            # A velocity servo's gain and damping are the same kd (tau = kd (dq* - dq)):
+            # one scale for both, or a mismatch would bias its speed.
+            kp_scale = torch.where(self.position_joints, kp_scale, kd_scale)
             gain[:, :, 0] *= kp_scale
             bias[:, :, 1] *= kp_scale
             bias[:, :, 2] *= kd_scale
@@ -492,7 +518,9 @@ class LeggedEnv(VecEnv):
         return self.projected_gravity
 
     def _obs_joint_pos(self) -> torch.Tensor:
-        return self.joint_pos - self.default_joint_pos
+        """Position joints' angles from the default pose; a wheel's angle says nothing
+        (it turns freely), so velocity joints read 0."""
+        return (self.joint_pos - self.default_joint_pos) * self.position_joints
 
     def _obs_joint_vel(self) -> torch.Tensor:
         return self.joint_vel
@@ -559,7 +587,7 @@ class LeggedEnv(VecEnv):
 
     def _reward_stand_still(self) -> torch.Tensor:
         still = torch.linalg.norm(self.commands, dim=1) < 0.1
-        return torch.sum((self.joint_pos - self.default_joint_pos).abs(), dim=1) * still
+        return torch.sum(self._obs_joint_pos().abs(), dim=1) * still
 
     def close(self) -> None:
         self.sim.close()

@@ -91,7 +91,7 @@ def _caster_rewards() -> RewardsCfg:
 
 @dataclass
 class CasterOmniCfg(LeggedEnvCfg):
-    robot: Literal["caster", "point"] = "caster"
+    robot: Literal["caster", "point", "wheel"] = "caster"
     commands: CommandsCfg = field(
         default_factory=lambda: CommandsCfg(
             resampling_time=5.0,
@@ -250,6 +250,7 @@ class CasterOmniEnv(LeggedEnv):
             slices[name] = [start, scale]
             start += dim
         return {
+            "kind": "gait",
             "cfg": dict(vars(self.cfg.gait)),
             "slices": {k: slices[k] for k in ("commands", "mode_mask", "gait_phase")},
             "action_scale": self.cfg.control.action_scale,

@@ -23,7 +23,9 @@ class SimCfg:
 @dataclass
 class ControlCfg:
     action_scale: float = field(default=0.25, metadata={"min": 0.0})
-    """Joint target = nominal pose + action_scale * action (rad)."""
+    """Position joints: target = nominal pose + action_scale * action (rad)."""
+    velocity_action_scale: float = field(default=10.0, metadata={"min": 0.0})
+    """Velocity joints (driving wheels): target = velocity_action_scale * action (rad/s)."""
     clip_actions: float = field(default=100.0, metadata={"min": 0.0})
 
 
@@ -123,7 +125,7 @@ class TerminationCfg:
 
 @dataclass
 class LeggedEnvCfg:
-    robot: Literal["caster", "point"] = "point"
+    robot: Literal["caster", "point", "wheel"] = "point"
     num_envs: int | None = field(default=None, metadata={"min": 1})
     """None: 4096 on the Warp backend, the CPU backend's efficient size otherwise."""
     episode_length_s: float = field(default=20.0, metadata={"min": 0.1})

@@ -46,7 +46,7 @@ def _go2_flat_rewards() -> RewardsCfg:
 
 @dataclass
 class Go2FlatCfg(LeggedEnvCfg):
-    robot: Literal["caster", "point"] = "point"
+    robot: Literal["caster", "point", "wheel"] = "point"
     commands: CommandsCfg = field(
         default_factory=lambda: CommandsCfg(ranges=CommandRanges((-1.0, 1.0), (-0.5, 0.5), (-1.0, 1.0)))
     )

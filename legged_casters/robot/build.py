@@ -1,10 +1,12 @@
-"""Generate the Go2 MJCF models (caster feet and point feet) from one source.
+"""Generate the Go2 MJCF models (caster feet, point feet, driving wheels) from one source.
 
     python -m legged_casters.robot.build            # rewrite the committed XML files
     python -m legged_casters.robot.build --check    # fail if they are out of date
 
-Both robots share the trunk and legs built here from `go2.py`; only the foot
-differs: a passive caster (`caster.add_caster`) or the Go2's rubber sphere.
+All robots share the trunk and legs built here from `go2.py`; only the foot
+differs: a passive caster (`caster.add_caster`), the Go2's rubber sphere, or an
+actuated driving wheel (`_add_drive_wheel`). The actuators follow
+`go2.action_layout(feet)`.
 """
 
 from __future__ import annotations
@@ -31,7 +33,12 @@ from legged_casters.robot.caster import (
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 MODEL_DIR = REPO_ROOT / "resources" / "robots" / "go2_caster"
-MODEL_FILES = {"caster": MODEL_DIR / "go2_caster.xml", "point": MODEL_DIR / "go2_point_foot.xml"}
+MODEL_FILES = {
+    "caster": MODEL_DIR / "go2_caster.xml",
+    "point": MODEL_DIR / "go2_point_foot.xml",
+    "wheel": MODEL_DIR / "go2_wheel.xml",
+}
+MODEL_NAMES = {"caster": "go2_caster", "point": "go2_point_foot", "wheel": "go2_wheel"}
 FOOT_KINDS = tuple(MODEL_FILES)
 
 STAND_KEY = "stand"
@@ -87,13 +94,13 @@ def _add_sensor(spec: mujoco.MjSpec, name: str, stype, objtype, objname: str) ->
 
 
 def build_spec(feet: str = "caster", params: ModelParams | None = None) -> mujoco.MjSpec:
-    """Build the Go2 with `feet` = 'caster' or 'point' as an MjSpec (not compiled)."""
+    """Build the Go2 with `feet` = 'caster', 'point' or 'wheel' as an MjSpec (not compiled)."""
     if feet not in FOOT_KINDS:
         raise ValueError(f"feet must be one of {FOOT_KINDS}, got {feet!r}")
     params = params or ModelParams()
     caster, contact = params.caster, params.contact
     spec = mujoco.MjSpec()
-    spec.modelname = "go2_caster" if feet == "caster" else "go2_point_foot"
+    spec.modelname = MODEL_NAMES[feet]
     spec.compiler.degree = False
     spec.compiler.autolimits = True
     apply_contact_options(spec, contact)
@@ -183,6 +190,8 @@ def build_spec(feet: str = "caster", params: ModelParams | None = None) -> mujoc
         end = [0, 0, -go2.CALF_LENGTH]
         if feet == "caster":
             add_caster(calf, leg, end, math.radians(caster.mount_angle), caster, contact)
+        elif feet == "wheel":
+            _add_drive_wheel(calf, leg, end, caster.rolling_resistance_coeff, contact)
         else:
             foot = calf.add_body(name=f"{leg}_foot", pos=end)
             fg = foot.add_geom(name=f"{leg}_foot", type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[go2.FOOT_RADIUS, 0, 0])
@@ -191,18 +200,74 @@ def build_spec(feet: str = "caster", params: ModelParams | None = None) -> mujoc
             fg.mass = 0.0  # the foot's mass is part of the calf's published mass
             foot.add_site(name=f"{leg}_foot", size=[0.005, 0, 0])
 
-    for joint in go2.ACTUATED_JOINTS:
-        leg, kind = go2.split_joint_name(joint)
-        act = spec.add_actuator(name=joint.replace("_joint", ""), target=joint, trntype=mujoco.mjtTrn.mjTRN_JOINT)
-        act.set_to_position(kp=go2.KP[kind], kv=go2.KD[kind])
-        act.ctrlrange = list(go2.joint_range(leg, kind))
+    layout = go2.action_layout(feet)
+    for i, joint in enumerate(layout.joints):
+        act = spec.add_actuator(name=actuator_name(joint), target=joint, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+        if layout.control[i] == go2.CONTROL_POSITION:
+            act.set_to_position(kp=layout.kp[i], kv=layout.kd[i])
+        else:
+            act.set_to_velocity(kv=layout.kd[i])
+        act.ctrlrange = list(layout.ranges[i])
         act.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
-        act.forcerange = [-go2.TORQUE_LIMIT[kind], go2.TORQUE_LIMIT[kind]]
+        act.forcerange = [-layout.torque_limits[i], layout.torque_limits[i]]
         act.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
 
     _add_sensors(spec, feet)
     _add_stand_key(spec, feet)
     return spec
+
+
+def actuator_name(joint: str) -> str:
+    """'FL_hip_joint' -> 'FL_hip': the actuator driving a joint."""
+    return joint.replace("_joint", "")
+
+
+def _add_drive_wheel(calf: mujoco.MjsBody, leg: str, end: list[float], c_rr: float, contact) -> None:
+    """An actuated wheel at the calf end, axle along the calf's y axis, its mid-plane
+    `DRIVE_WHEEL_OFFSET` outboard. Body and geom {leg}_wheel, joint {leg}_wheel_joint."""
+    _, sy = go2.leg_signs(leg)
+    r, w, m = go2.DRIVE_WHEEL_RADIUS, go2.DRIVE_WHEEL_WIDTH, go2.DRIVE_WHEEL_MASS
+    wheel = calf.add_body(name=f"{leg}_wheel", pos=[end[0], sy * go2.DRIVE_WHEEL_OFFSET, end[2]])
+    # Rolling resistance modelled as on the casters: Coulomb friction on the axle,
+    # tau = c_rr * N * R, with N the robot's weight / 4.
+    load = (_robot_mass("wheel")) * 9.81 / 4
+    wheel.add_joint(
+        name=f"{leg}_wheel_joint",
+        type=mujoco.mjtJoint.mjJNT_HINGE,
+        axis=[0, 1, 0],
+        armature=go2.MOTOR_ARMATURE,
+        frictionloss=c_rr * load * r,
+    )
+    wheel.mass = m
+    wheel.ipos = [0, 0, 0]
+    wheel.inertia = cylinder_inertia(m, r, w, axis=1)
+    wheel.explicitinertial = True
+    tire = wheel.add_geom(
+        name=f"{leg}_wheel",
+        type=mujoco.mjtGeom.mjGEOM_CYLINDER,
+        size=[r, w / 2, 0],
+        quat=[math.cos(math.pi / 4), math.sin(math.pi / 4), 0, 0],
+    )
+    tire.rgba = [0.15, 0.15, 0.15, 1]
+    tire.mass = 0.0
+    set_contact(tire, contact)
+    wheel.add_geom(  # a rim marker makes rotation visible in videos
+        type=mujoco.mjtGeom.mjGEOM_BOX,
+        size=[0.008, w / 2 + 0.001, 0.008],
+        pos=[r * 0.75, 0, 0],
+        contype=0,
+        conaffinity=0,
+        group=1,
+        rgba=[0.9, 0.6, 0.1, 1],
+        mass=0.0,
+    )
+    wheel.add_site(name=f"{leg}_wheel", size=[0.005, 0, 0])
+
+
+def _robot_mass(feet: str) -> float:
+    legs = 4 * (go2.HIP_MASS + go2.THIGH_MASS + go2.CALF_MASS)
+    extra = 4 * go2.DRIVE_WHEEL_MASS if feet == "wheel" else 0.0
+    return go2.TRUNK_MASS + legs + extra
 
 
 def _add_sensors(spec: mujoco.MjSpec, feet: str) -> None:
@@ -213,13 +278,14 @@ def _add_sensors(spec: mujoco.MjSpec, feet: str) -> None:
     _add_sensor(spec, "trunk_pos", S.mjSENS_FRAMEPOS, O.mjOBJ_SITE, go2.IMU_SITE)
     _add_sensor(spec, "trunk_linvel_world", S.mjSENS_FRAMELINVEL, O.mjOBJ_SITE, go2.IMU_SITE)
     _add_sensor(spec, "trunk_angvel_world", S.mjSENS_FRAMEANGVEL, O.mjOBJ_SITE, go2.IMU_SITE)
-    joints = list(go2.ACTUATED_JOINTS) + (list(go2.PASSIVE_JOINTS) if feet == "caster" else [])
+    actuated = go2.action_layout(feet).joints
+    joints = list(actuated) + (list(go2.PASSIVE_JOINTS) if feet == "caster" else [])
     for joint in joints:
         _add_sensor(spec, f"{joint}_pos", S.mjSENS_JOINTPOS, O.mjOBJ_JOINT, joint)
     for joint in joints:
         _add_sensor(spec, f"{joint}_vel", S.mjSENS_JOINTVEL, O.mjOBJ_JOINT, joint)
-    for joint in go2.ACTUATED_JOINTS:
-        _add_sensor(spec, f"{joint}_torque", S.mjSENS_ACTUATORFRC, O.mjOBJ_ACTUATOR, joint.replace("_joint", ""))
+    for joint in actuated:
+        _add_sensor(spec, f"{joint}_torque", S.mjSENS_ACTUATORFRC, O.mjOBJ_ACTUATOR, actuator_name(joint))
     if feet == "caster":
         for leg in go2.LEGS:
             _add_sensor(spec, f"{leg}_caster_zaxis", S.mjSENS_FRAMEZAXIS, O.mjOBJ_SITE, f"{leg}_caster_base")
@@ -230,6 +296,8 @@ def _add_sensors(spec: mujoco.MjSpec, feet: str) -> None:
         if feet == "caster":
             _add_contact_sensor(spec, f"{leg}_caster_base_contact", f"{leg}_caster_base")
             _add_contact_sensor(spec, f"{leg}_caster_fork_contact", f"{leg}_caster_fork")
+            _add_contact_sensor(spec, f"{leg}_wheel_contact", f"{leg}_wheel")
+        elif feet == "wheel":
             _add_contact_sensor(spec, f"{leg}_wheel_contact", f"{leg}_wheel")
         else:
             _add_contact_sensor(spec, f"{leg}_foot_contact", f"{leg}_foot")
@@ -248,6 +316,13 @@ def ground_clearance(model: mujoco.MjModel, data: mujoco.MjData, feet: str) -> f
             down = np.array([0.0, 0.0, -1.0]) - axle * (-axle[2])
             down /= np.linalg.norm(down)
             low = data.geom_xpos[gid][2] + model.geom_size[gid][0] * down[2]
+        elif feet == "wheel":
+            # A cylinder (axle = its z axis): the lowest rim point of its lower face.
+            gid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, f"{leg}_wheel")
+            axle = data.geom_xmat[gid].reshape(3, 3)[:, 2]
+            radial = np.sqrt(max(0.0, 1.0 - axle[2] ** 2))
+            r, half = model.geom_size[gid][0], model.geom_size[gid][1]
+            low = data.geom_xpos[gid][2] - r * radial - half * abs(axle[2])
         else:
             gid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, f"{leg}_foot")
             low = data.geom_xpos[gid][2] - model.geom_size[gid][0]
@@ -275,20 +350,22 @@ def _add_stand_key(spec: mujoco.MjSpec, feet: str) -> None:
     model = spec.compile()
     data = mujoco.MjData(model)
     qpos = model.qpos0.copy()
-    for joint, value in zip(go2.ACTUATED_JOINTS, go2.default_joint_positions(), strict=True):
+    layout = go2.action_layout(feet)
+    for joint, value in zip(layout.joints, layout.default, strict=True):
         qpos[model.jnt_qposadr[model.joint(joint).id]] = value
     qpos[2] = 0.0
     data.qpos[:] = qpos
     mujoco.mj_kinematics(model, data)
     data.qpos[2] = -ground_clearance(model, data, feet)
-    data.ctrl[:] = go2.default_joint_positions()
+    data.ctrl[:] = layout.default
     _settle(model, data, feet)
     qpos = data.qpos.copy()
     qpos[0:2] = 0.0
-    if feet == "caster":  # wheel rotation is irrelevant to the stance; start at zero
-        qpos[[model.jnt_qposadr[model.joint(j).id] for j in go2.WHEEL_JOINTS]] = 0.0
+    wheels = {"caster": go2.WHEEL_JOINTS, "wheel": go2.DRIVE_WHEEL_JOINTS}.get(feet, ())
+    # Wheel rotation is irrelevant to the stance; start at zero.
+    qpos[[model.jnt_qposadr[model.joint(j).id] for j in wheels]] = 0.0
     # Rounded so that the file does not depend on the last bits of the platform's maths.
-    spec.add_key(name=STAND_KEY, qpos=np.round(qpos, 4).tolist(), ctrl=go2.default_joint_positions())
+    spec.add_key(name=STAND_KEY, qpos=np.round(qpos, 4).tolist(), ctrl=list(layout.default))
 
 
 _NUMBER = re.compile(r"-?\d+\.?\d*(?:e[-+]?\d+)?")

@@ -7,6 +7,8 @@ else in the package (model builder, envs, export metadata) reads them from here.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 LEGS: tuple[str, ...] = ("FL", "FR", "RL", "RR")
 """Unitree leg order: front-left, front-right, rear-left, rear-right."""
 
@@ -18,6 +20,9 @@ ACTUATED_JOINTS: tuple[str, ...] = tuple(f"{leg}_{kind}_joint" for leg in LEGS f
 SWIVEL_JOINTS: tuple[str, ...] = tuple(f"{leg}_caster_swivel_joint" for leg in LEGS)
 WHEEL_JOINTS: tuple[str, ...] = tuple(f"{leg}_caster_wheel_joint" for leg in LEGS)
 PASSIVE_JOINTS: tuple[str, ...] = SWIVEL_JOINTS + WHEEL_JOINTS
+
+DRIVE_WHEEL_JOINTS: tuple[str, ...] = tuple(f"{leg}_wheel_joint" for leg in LEGS)
+"""The driving-wheel robot's 4 actuated wheel joints (FL, FR, RL, RR)."""
 
 TRUNK_BODY = "trunk"
 IMU_SITE = "imu"
@@ -48,6 +53,20 @@ VELOCITY_LIMIT = {"hip": 30.1, "thigh": 30.1, "calf": 20.07}  # rad/s
 
 # Reflected rotor inertia of the Go2 joint motors (kg m^2), a common modelling value.
 MOTOR_ARMATURE = 0.01
+
+# --- driving wheels (robot "wheel") -----------------------------------------------------
+# We found no published wheel specification of Unitree's wheeled Go2 (Go2-W); these are
+# stated choices of the size of its tyres, see docs/tasks.md.
+DRIVE_WHEEL_RADIUS = 0.09  # m
+DRIVE_WHEEL_WIDTH = 0.04  # m
+DRIVE_WHEEL_MASS = 0.6  # kg each: tyre, rim and hub motor
+DRIVE_WHEEL_OFFSET = 0.035  # m, wheel mid-plane outboard of the calf axis
+# The wheel motors: the Go2's hip motor limits, assumed to be the same motor family.
+DRIVE_WHEEL_TORQUE_LIMIT = 23.7  # N m
+DRIVE_WHEEL_VELOCITY_LIMIT = 30.1  # rad/s (2.7 m/s at the rim)
+# Velocity servo tau = KD_WHEEL (dq_target - dq), like a LowCmd with kp 0. At 2 N m s/rad
+# the wheel follows a target within ~0.02 s under the robot's load.
+DRIVE_WHEEL_KD = 2.0
 
 # --- PD gains of the position actuators -------------------------------------------
 # The caster robot needs stiff legs to stand: with Kp 40 the loaded legs splay, the
@@ -104,3 +123,69 @@ def kp() -> list[float]:
 
 def kd() -> list[float]:
     return [KD[split_joint_name(j)[1]] for j in ACTUATED_JOINTS]
+
+
+CONTROL_POSITION = "position"
+CONTROL_VELOCITY = "velocity"
+
+
+@dataclass(frozen=True)
+class ActionLayout:
+    """What each action component drives, in action order: the one source every consumer
+    (model builder, env, export metadata, bridge, simulated robot) reads.
+
+    A position joint's target is default + action_scale * action (rad) with PD gains
+    kp/kd; a velocity joint's target is velocity_scale * action (rad/s), tracked with kd
+    alone (kp 0). `default` is 0 for velocity joints."""
+
+    joints: tuple[str, ...]
+    control: tuple[str, ...]
+    default: tuple[float, ...]
+    kp: tuple[float, ...]
+    kd: tuple[float, ...]
+    torque_limits: tuple[float, ...]
+    velocity_limits: tuple[float, ...]
+    ranges: tuple[tuple[float, float], ...]
+    """Position limits of position joints; +-velocity limit of velocity joints."""
+
+    def __len__(self) -> int:
+        return len(self.joints)
+
+    @property
+    def position_mask(self) -> tuple[bool, ...]:
+        return tuple(c == CONTROL_POSITION for c in self.control)
+
+    @property
+    def num_legs_joints(self) -> int:
+        return sum(self.position_mask)
+
+
+def action_layout(feet: str) -> ActionLayout:
+    """The action layout of the Go2 with `feet` 'caster', 'point' (12 leg joints) or
+    'wheel' (12 leg joints, then 4 wheel joints)."""
+    legs = dict(
+        joints=ACTUATED_JOINTS,
+        control=(CONTROL_POSITION,) * 12,
+        default=tuple(default_joint_positions()),
+        kp=tuple(kp()),
+        kd=tuple(kd()),
+        torque_limits=tuple(torque_limits()),
+        velocity_limits=tuple(velocity_limits()),
+        ranges=tuple(joint_ranges()),
+    )
+    if feet in ("caster", "point"):
+        return ActionLayout(**legs)
+    if feet == "wheel":
+        n = len(DRIVE_WHEEL_JOINTS)
+        v = DRIVE_WHEEL_VELOCITY_LIMIT
+        return ActionLayout(
+            joints=ACTUATED_JOINTS + DRIVE_WHEEL_JOINTS,
+            control=legs["control"] + (CONTROL_VELOCITY,) * n,
+            default=legs["default"] + (0.0,) * n,
+            kp=legs["kp"] + (0.0,) * n,
+            kd=legs["kd"] + (DRIVE_WHEEL_KD,) * n,
+            torque_limits=legs["torque_limits"] + (DRIVE_WHEEL_TORQUE_LIMIT,) * n,
+            velocity_limits=legs["velocity_limits"] + (v,) * n,
+            ranges=legs["ranges"] + ((-v, v),) * n,
+        )
+    raise ValueError(f"unknown feet {feet!r}; expected 'caster', 'point' or 'wheel'")

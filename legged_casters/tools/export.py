@@ -5,7 +5,7 @@
 
 Both networks are the actor's observation normaliser, its MLP, the distribution's mean
 and, for a task with a gait prior (caster_omni), the prior added to that mean, all
-computed from the one observation vector: obs (batch, dim) -> actions (batch, 12).
+computed from the one observation vector: obs (batch, dim) -> actions (batch, n), n = 12 or 16 (the wheel robot).
 
 Writes <out>/policy.pt (TorchScript), <out>/policy.onnx (one file, dynamic batch axis),
 <out>/policy.yaml, and the run's env.yaml / train.yaml (so that play.py and
@@ -117,7 +117,7 @@ def propulsion_modes(env) -> dict[str, list[int]]:
 def gait_clock(env) -> dict:
     """{"gait_clock": ...} for a policy that observes the gait clock (and carries the prior), else {}."""
     prior = env.actor_prior()
-    if prior is None:
+    if prior is None or prior.get("kind", "gait") != "gait":
         return {}
     return {
         "gait_clock": {
@@ -133,27 +133,40 @@ def policy_metadata(env, task: str) -> dict:
     """The deployment description (format_version 1), read from the env and its model."""
     model, cfg = env.model, env.cfg
     act = _actuator_of_joint(model)
-    missing = [j for j in go2.ACTUATED_JOINTS if j not in act]
+    layout = env.layout
+    missing = [j for j in layout.joints if j not in act]
     if missing:
         raise UsageError(f"the model has no actuator for joints {missing}")
-    ids = [act[j] for j in go2.ACTUATED_JOINTS]
-    kp = [float(model.actuator_gainprm[a, 0]) for a in ids]
+    ids = [act[j] for j in layout.joints]
+    pos = layout.position_mask
+    # Position servo: gain kp, bias (0, -kp, -kd); velocity servo: gain kd, bias (0, 0, -kd).
+    kp = [float(model.actuator_gainprm[a, 0]) if p else 0.0 for a, p in zip(ids, pos, strict=True)]
     kd = [float(-model.actuator_biasprm[a, 2]) for a in ids]
     torque = [
         float(max(abs(model.actuator_forcerange[a, 0]), abs(model.actuator_forcerange[a, 1])))
         if model.actuator_forcelimited[a]
         else float(lim)
-        for a, lim in zip(ids, go2.torque_limits(), strict=True)
+        for a, lim in zip(ids, layout.torque_limits, strict=True)
     ]
-    ranges = [[float(v) for v in model.joint(j).range] for j in go2.ACTUATED_JOINTS]
+    # Position joints: their angle limits; velocity joints: the velocity target's limits.
+    ranges = [
+        [float(v) for v in (model.joint(j).range if p else r)]
+        for j, p, r in zip(layout.joints, pos, layout.ranges, strict=True)
+    ]
     terms = [{"name": name, "dim": int(dim), "scale": float(scale)} for name, dim, scale in env.obs_layout["policy"]]
     return {
         "format_version": FORMAT_VERSION,
         "task": task,
         "robot": cfg.robot,
-        "joint_names": list(go2.ACTUATED_JOINTS),
+        "joint_names": list(layout.joints),
+        "joint_control": list(layout.control),
         "default_joint_pos": [_short(v) for v in env.default_joint_pos.cpu().numpy()],
         "action_scale": float(cfg.control.action_scale),
+        **(
+            {"velocity_action_scale": float(cfg.control.velocity_action_scale)}
+            if go2.CONTROL_VELOCITY in layout.control
+            else {}
+        ),
         "clip_actions": float(cfg.control.clip_actions),
         "kp": kp,
         "kd": kd,
@@ -275,7 +288,9 @@ def export_policy(actor: nn.Module, meta: dict, out_dir: Path) -> dict[str, Path
     for key, value in meta.items():
         props[key] = value if isinstance(value, str) else json.dumps(value)
     onnx.helper.set_model_props(proto, props)
-    proto.doc_string = f"{meta['task']} policy: {ONNX_INPUT} (batch, {dim}) -> {ONNX_OUTPUT} (batch, 12)"
+    proto.doc_string = (
+        f"{meta['task']} policy: {ONNX_INPUT} (batch, {dim}) -> {ONNX_OUTPUT} (batch, {len(meta['joint_names'])})"
+    )
     onnx.checker.check_model(proto)
     tmp = out_dir / ".policy.onnx.tmp"
     onnx.save(proto, str(tmp))

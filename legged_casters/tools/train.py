@@ -26,7 +26,6 @@ from rsl_rl.runners import OnPolicyRunner
 
 from legged_casters.config import dump_yaml
 from legged_casters.envs.base import resolve_backend
-from legged_casters.robot import go2
 from legged_casters.sim.base import BACKEND_KINDS
 from legged_casters.tools import common
 from legged_casters.tools.common import CheckpointError, UsageError
@@ -165,8 +164,9 @@ def _progress_hook(runner: CheckpointingRunner, console: str, task: str, evaluat
         length = statistics.mean(logger.lenbuffer) if logger.lenbuffer else math.nan
         std = kw.get("action_std")
         if std is not None:
-            per_joint = std.reshape(-1, len(go2.ACTUATED_JOINTS))[0].tolist()
-            for name, value in zip(go2.ACTUATED_JOINTS, per_joint, strict=True):
+            joints = runner.env.layout.joints
+            per_joint = std.reshape(-1, len(joints))[0].tolist()
+            for name, value in zip(joints, per_joint, strict=True):
                 logger.writer.add_scalar(f"Noise/std_{name}", value, it)
         if evaluator is not None and eval_every and ((it + 1) % eval_every == 0 or it + 1 == total_it or done == 1):
             t0 = time.time()
