@@ -57,11 +57,11 @@ def run(tmp_path_factory):
     )
     assert rc == 0, out1
     (run_dir,) = (root / TASK).iterdir()
-    # Snapshot of the first invocation's last checkpoint, before the resume adds model_2.
-    first = torch.load(run_dir / "model_1.pt", weights_only=True)
+    # Snapshot of the first invocation's last checkpoint, before the resume adds model_3.
+    first = torch.load(run_dir / "model_2.pt", weights_only=True)
     # A curriculum state the resumed env must pick up from the checkpoint.
     first["infos"]["env_state"]["command_ranges"]["lin_vel_x"] = [-1.5, 1.5]
-    torch.save(first, run_dir / "model_1.pt")
+    torch.save(first, run_dir / "model_2.pt")
     rc, out2 = _train(root, "--resume", "--max_iterations", "1")
     assert rc == 0, out2
     return root, run_dir, first, out1, out2
@@ -83,7 +83,9 @@ def test_run_folder_holds_checkpoints_configs_git_state_and_events(run):
     assert run_dir.parent == root / TASK and run_dir.name.endswith("_tiny")
     assert common.RUN_DIR_RE.match(run_dir.name)
     names = {p.name for p in run_dir.iterdir()}
-    assert {"model_0.pt", "model_1.pt", "model_2.pt", "env.yaml", "train.yaml", "run.yaml"} <= names
+    # One convention: model_<n>.pt is the policy after n iterations ("it n/total").
+    assert {"model_1.pt", "model_2.pt", "model_3.pt", "env.yaml", "train.yaml", "run.yaml"} <= names
+    assert "model_0.pt" not in names
     assert {"git.yaml", "git.diff", "command.txt"} <= names
     assert any(n.startswith("events.out.tfevents") for n in names)
     assert not [n for n in names if n.endswith(".tmp")]
@@ -100,6 +102,8 @@ def test_run_folder_holds_checkpoints_configs_git_state_and_events(run):
     # One progress line per iteration, with throughput and ETA.
     lines = [line for line in out1.splitlines() if line.startswith(f"[{TASK}] it ")]
     assert len(lines) == 2 and "steps/s" in lines[0] and "ETA" in lines[0] and "mean reward" in lines[0]
+    assert lines[0].startswith(f"[{TASK}] it 1/2 ") and lines[1].startswith(f"[{TASK}] it 2/2 ")
+    assert "Learning iteration" not in out1  # --console line: only the progress line
     # The deterministic evaluation runs on the first and the last iteration (and every 25th).
     assert all("eval |err| vx" in line and "falls" in line for line in lines)
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
@@ -120,8 +124,8 @@ def test_run_folder_holds_checkpoints_configs_git_state_and_events(run):
 
 def test_checkpoints_load_weights_only_and_carry_env_state(run):
     _, run_dir, _, _, _ = run
-    ckpt = torch.load(run_dir / "model_0.pt", weights_only=True)
-    assert ckpt["iter"] == 0
+    ckpt = torch.load(run_dir / "model_1.pt", weights_only=True)
+    assert ckpt["iter"] == 0  # rsl_rl's own field: the index (from 0) of the last iteration done
     assert ckpt["infos"]["task"] == TASK
     assert ckpt["infos"]["env_state"]["command_ranges"]["lin_vel_x"] == [-1.0, 1.0]
     assert {"actor_state_dict", "critic_state_dict", "optimizer_state_dict"} <= set(ckpt)
@@ -129,9 +133,11 @@ def test_checkpoints_load_weights_only_and_carry_env_state(run):
 
 def test_resume_continues_iterations_optimizer_normaliser_and_curriculum(run):
     _, run_dir, first, _, out2 = run
-    resumed = torch.load(run_dir / "model_2.pt", weights_only=True)
-    assert resumed["iter"] == 2  # iterations 0, 1, then 2: numbering continues, nothing overwritten
-    assert f"resumed {run_dir / 'model_1.pt'} at iteration 2" in out2
+    resumed = torch.load(run_dir / "model_3.pt", weights_only=True)
+    assert resumed["iter"] == 2  # iterations 1, 2, then 3: numbering continues, nothing overwritten
+    assert f"resumed {run_dir / 'model_2.pt'} after 2 iterations" in out2
+    assert f"[{TASK}] it 3/3 " in out2
+    assert "Learning iteration 3/3" in out2  # rsl_rl's block report (the default) counts the same way
     # Adam's step count continues from the checkpoint's (a fresh optimizer would restart at one iteration's).
     steps_before = max(s["step"].item() for s in first["optimizer_state_dict"]["state"].values())
     steps_after = max(s["step"].item() for s in resumed["optimizer_state_dict"]["state"].values())
@@ -277,17 +283,17 @@ def test_headless_play_writes_a_video_and_plots(run, tmp_path):
         assert play.main(argv) == 0, buf.getvalue()
     names = sorted(p.name for p in out.iterdir())
     assert names == [
-        "model_2_steps.mp4",
-        "model_2_steps_data.npz",
-        "model_2_steps_joints.png",
-        "model_2_steps_velocity.png",
+        "model_3_steps.mp4",
+        "model_3_steps_data.npz",
+        "model_3_steps_joints.png",
+        "model_3_steps_velocity.png",
     ]
     import imageio.v2 as imageio
 
-    frames = [f for f in imageio.get_reader(str(out / "model_2_steps.mp4")).iter_data()]
+    frames = [f for f in imageio.get_reader(str(out / "model_3_steps.mp4")).iter_data()]
     assert len(frames) == 10 and frames[0].shape == (120, 160, 3)
     assert np.std(frames[5]) > 5  # a picture, not a blank frame
-    data = np.load(out / "model_2_steps_data.npz")
+    data = np.load(out / "model_3_steps_data.npz")
     assert data["t"].shape == (50,) and data["measured"].shape == (50, 3) and data["joint_pos"].shape == (50, 12)
     # steps profile: stand, then -0.6 m/s, then +0.6 m/s
     assert data["command"][0, 0] == 0 and data["command"][25, 0] == pytest.approx(-0.6)
@@ -350,7 +356,7 @@ def test_resume_without_runs_or_with_a_missing_checkpoint(run, no_simulation, tm
     root, run_dir, _, _, _ = run
     argv = ["--task", TASK, "--resume", "--log_root", str(root)]
     assert train.main([*argv, "--checkpoint", "99"]) == common.EXIT_USAGE
-    assert "checkpoints there: model_0.pt, model_1.pt, model_2.pt" in capsys.readouterr().err
+    assert "checkpoints there: model_1.pt, model_2.pt, model_3.pt" in capsys.readouterr().err
     assert train.main([*argv, "--load_run", "nope"]) == common.EXIT_USAGE
     assert f"runs there: {run_dir.name}" in capsys.readouterr().err
 
@@ -359,7 +365,7 @@ def test_corrupt_or_truncated_checkpoints_give_a_clear_error(run, no_simulation,
     _, run_dir, _, _, _ = run
     copy = tmp_path / TASK / run_dir.name
     shutil.copytree(run_dir, copy)
-    newest = copy / "model_2.pt"
+    newest = copy / "model_3.pt"
     good = newest.read_bytes()
     for bad in (good[: len(good) // 2], b"not a checkpoint at all"):
         newest.write_bytes(bad)
@@ -464,3 +470,82 @@ def test_viewer_runs_under_a_virtual_display(exported, tmp_path):
     assert res.returncode == 0, res.stderr[-2000:]
     assert "profile steps: 20 steps" in res.stdout
     assert (tmp_path / "policy_steps_velocity.png").is_file() and not list(tmp_path.glob("*.mp4"))
+
+
+# --- issue 14: rough edges a new user hit ------------------------------------------------------------------
+def test_play_and_evaluate_take_a_training_checkpoint_as_policy(run, tmp_path):
+    """A training checkpoint given to --policy is played from its run, not called corrupt."""
+    _, run_dir, _, _, _ = run
+    argv = ["--policy", str(run_dir / "model_3.pt"), "--no_video", "--headless", "--profile", "constant"]
+    argv += ["--duration", "0.2", "--num_envs", "1", "--out", str(tmp_path)]
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert play.main(argv) == 0, buf.getvalue()
+    assert "is a training checkpoint: playing it from its run" in buf.getvalue()
+    assert (tmp_path / "model_3_constant_data.npz").is_file()
+    assert f"wrote {tmp_path / 'model_3_constant_data.npz'}" in buf.getvalue()  # the data file is listed too
+
+
+def test_corrupt_checkpoint_message_is_ours_and_verbose_adds_the_loaders(run, no_simulation, tmp_path, capsys):
+    _, run_dir, _, _, _ = run
+    copy = tmp_path / TASK / run_dir.name
+    shutil.copytree(run_dir, copy)
+    (copy / "model_3.pt").write_bytes((copy / "model_3.pt").read_bytes()[:1000])
+    argv = ["--task", TASK, "--log_root", str(tmp_path)]
+    assert export.main(argv) == common.EXIT_FAILURE
+    err = capsys.readouterr().err
+    assert "is corrupt" in err and "pick another with --checkpoint" in err and "--verbose" in err
+    assert "PytorchStreamReader" not in err and "likelihood" not in err  # no torch text cut mid-sentence
+    assert export.main([*argv, "--verbose"]) == common.EXIT_FAILURE
+    assert "the loader said:" in capsys.readouterr().err
+
+
+def test_renamed_run_folders_are_found_by_contents_newest_first(run, tmp_path):
+    _, run_dir, _, _, _ = run
+    exp = tmp_path / TASK
+    older, newer = exp / "zz_my_old_run", exp / "aa_renamed"
+    shutil.copytree(run_dir, older)
+    shutil.copytree(run_dir, newer)
+    for path, created in ((older, "2020-01-01T00:00:00"), (newer, "2030-01-01T00:00:00")):
+        info = yaml.safe_load((path / common.RUN_FILE).read_text())
+        info["created"] = created
+        (path / common.RUN_FILE).write_text(yaml.safe_dump(info))
+    (exp / "notes").mkdir()  # a folder without run.yaml or checkpoints is not a run
+    assert common.list_runs(tmp_path, TASK) == [older, newer]
+    assert common.find_run(tmp_path, TASK, None) == newer
+
+
+def test_help_states_each_default_once():
+    for parser in (train.build_parser(), play.build_parser(), export.build_parser()):
+        text = parser.format_help()
+        assert "(default: None)" not in text and "(default: [])" not in text
+        formatter = parser._get_formatter()
+        for action in parser._actions:
+            assert formatter._get_help_string(action).count("(default:") <= 1, action.option_strings
+    text = play.build_parser().format_help()
+    assert "video width in pixels (default: 640)" in " ".join(text.split())
+
+
+def test_watch_hint_names_the_resumed_runs_own_folder(run, tmp_path):
+    _, run_dir, _, _, _ = run
+    copy = tmp_path / "elsewhere" / run_dir.name
+    shutil.copytree(run_dir, copy)
+    rc, out = _train(tmp_path / "default_root", "--resume", "--load_run", str(copy), "--max_iterations", "1")
+    assert rc == 0, out
+    assert f"watch: tensorboard --logdir {copy} " in out
+    assert not (copy / "git").exists()  # rsl_rl's empty git/ folder is not made (git.yaml/git.diff are ours)
+
+
+def test_play_of_a_runs_export_writes_next_to_the_run_not_into_the_export(run, tmp_path):
+    root, run_dir, _, _, _ = run
+    copy = tmp_path / TASK / run_dir.name
+    shutil.copytree(run_dir, copy)
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert export.main(["--task", TASK, "--log_root", str(tmp_path), "--load_run", str(copy)]) == 0
+    before = sorted(p.name for p in (copy / "exported").iterdir())
+    argv = ["--policy", str(copy / "exported" / "policy.onnx"), "--no_video", "--headless", "--duration", "0.2"]
+    argv += ["--num_envs", "1", "--log_root", str(tmp_path)]
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert play.main(argv) == 0
+    assert sorted(p.name for p in (copy / "exported").iterdir()) == before
+    assert (copy / "play" / "policy_steps_data.npz").is_file()

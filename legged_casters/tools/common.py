@@ -39,10 +39,15 @@ class UsageError(Exception):
 
 
 class CheckpointError(Exception):
-    """A checkpoint that cannot be read or does not fit the task. Exit code 1."""
+    """A checkpoint that cannot be read or does not fit the task. Exit code 1.
+    `detail`: the underlying library's full message, shown with --verbose."""
+
+    def __init__(self, message: str, detail: str | None = None):
+        super().__init__(message)
+        self.detail = detail
 
 
-def run_cli(fn: Callable[[], int], prog: str) -> int:
+def run_cli(fn: Callable[[], int], prog: str, verbose: bool = False) -> int:
     """Run a command body and turn the errors a user can fix into a message and an exit code."""
     try:
         return fn()
@@ -51,7 +56,28 @@ def run_cli(fn: Callable[[], int], prog: str) -> int:
         return EXIT_USAGE
     except CheckpointError as err:
         print(f"{prog}: error: {err}", file=sys.stderr)
+        if err.detail:
+            if verbose:
+                print(f"{prog}: the loader said:\n{err.detail}", file=sys.stderr)
+            else:
+                print(f"{prog}: (--verbose shows the loader's own message)", file=sys.stderr)
         return EXIT_FAILURE
+
+
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """argparse's defaults formatter, without "(default: None)" and without a second
+    default where the help text already states its own."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        default = action.default
+        if "(default" in text or default is None or default is argparse.SUPPRESS or default is False or default == []:
+            return text
+        return super()._get_help_string(action)
+
+
+def add_verbose_flag(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--verbose", action="store_true", help="on errors, also print the libraries' own messages")
 
 
 # --- tasks and devices -----------------------------------------------------------------
@@ -128,12 +154,29 @@ def checkpoints(run_dir: Path) -> list[tuple[int, Path]]:
     return sorted(found)
 
 
+def _run_time(run_dir: Path) -> tuple[float, str]:
+    """When a run started: run.yaml's `created`, else the time in a <date>_<time> folder
+    name, else the folder's modification time (a renamed or copied run)."""
+    created = read_run_info(run_dir).get("created")
+    stamp = None
+    try:
+        if created:
+            stamp = datetime.datetime.fromisoformat(str(created)).timestamp()
+        elif RUN_DIR_RE.match(run_dir.name):
+            stamp = datetime.datetime.strptime(run_dir.name[:19], "%Y-%m-%d_%H-%M-%S").timestamp()
+    except ValueError:
+        stamp = None
+    return (stamp if stamp is not None else run_dir.stat().st_mtime, run_dir.name)
+
+
 def list_runs(root: Path, experiment: str) -> list[Path]:
-    """Run folders of an experiment, oldest first (their names start with the date and time)."""
+    """Run folders of an experiment, oldest first. A run is found by its contents (run.yaml
+    or a checkpoint), not its name, so a renamed run folder is still one."""
     exp = root / experiment
     if not exp.is_dir():
         return []
-    return sorted(p for p in exp.iterdir() if p.is_dir() and RUN_DIR_RE.match(p.name))
+    runs = [p for p in exp.iterdir() if p.is_dir() and ((p / RUN_FILE).is_file() or checkpoints(p))]
+    return sorted(runs, key=_run_time)
 
 
 def find_run(root: Path, experiment: str, load_run: str | None) -> Path:
@@ -234,13 +277,24 @@ def load_checkpoint(path: str | Path, map_location: str = "cpu") -> dict:
         data = torch.load(path, weights_only=True, map_location=map_location)
     except Exception as err:  # truncated zip, not a torch file, disallowed pickle content...
         raise CheckpointError(
-            f"checkpoint {path} cannot be read ({type(err).__name__}: {str(err).splitlines()[0][:200]}); "
-            "the file is corrupt or not an rsl_rl checkpoint; pick another with --checkpoint"
+            f"checkpoint {path} cannot be read: the file is corrupt (a copy or save that did not finish?) "
+            "or not a training checkpoint of this project; pick another with --checkpoint",
+            f"{type(err).__name__}: {err}",
         ) from None
     if not isinstance(data, dict) or any(k not in data for k in REQUIRED_CHECKPOINT_KEYS):
         keys = sorted(data) if isinstance(data, dict) else type(data).__name__
         raise CheckpointError(f"checkpoint {path} is not an rsl_rl training checkpoint (has {keys})")
     return data
+
+
+def is_training_checkpoint(path: Path) -> bool:
+    """Is `path` a training checkpoint (model_<n>.pt: networks, optimizer, iteration)
+    rather than an exported TorchScript policy? Loaded weights-only."""
+    try:
+        data = torch.load(path, weights_only=True, map_location="cpu")
+    except Exception:  # TorchScript archives, other files
+        return False
+    return isinstance(data, dict) and all(k in data for k in REQUIRED_CHECKPOINT_KEYS)
 
 
 # --- configs of a run ------------------------------------------------------------------------
@@ -375,6 +429,7 @@ def add_run_selection_flags(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--load_run", help="run folder name under logs/<experiment>, or a path (default: newest)")
     g.add_argument("--checkpoint", help="iteration number, model_<it>.pt or a path (default: newest)")
     g.add_argument("--log_root", help=f"root of the run folders (default: ${LOG_ROOT_ENV} or <repo>/logs)")
+    add_verbose_flag(parser)
 
 
 # --- a checkpoint to evaluate (play, export) ---------------------------------------------------

@@ -383,12 +383,21 @@ def _load_exported(path: Path, task_arg: str | None):
     try:
         module = torch.jit.load(str(file), map_location="cpu").eval()
     except RuntimeError as err:
-        first = str(err).splitlines()[0] if str(err) else type(err).__name__
-        raise common.CheckpointError(f"{file} could not be loaded as a TorchScript policy: {first}") from None
+        raise common.CheckpointError(
+            f"{file} cannot be loaded as an exported TorchScript policy: the file is damaged or was not written by "
+            "export.py",
+            str(err),
+        ) from None
     return exp.task, exp.spec, exp.env_cfg, (lambda obs: module(obs["policy"])), f"{file}", exp.obs_dim
 
 
 def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
+    given = Path(args.policy).expanduser() if args.policy else None
+    if given is not None and given.suffix == ".pt" and given.is_file() and common.is_training_checkpoint(given):
+        if args.load_run or args.checkpoint:
+            raise UsageError(f"--policy {given} is a training checkpoint; give it alone or as --checkpoint")
+        print(f"[{PROG}] {given} is a training checkpoint: evaluating it from its run {given.parent}")
+        args.policy, args.load_run, args.checkpoint = None, str(given.parent), str(given)
     if args.policy:
         if args.stochastic:
             raise UsageError("--stochastic needs a training checkpoint (an exported policy is deterministic)")
@@ -447,7 +456,9 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
 
 def main(argv: list[str] | None = None, default_log_root: Path | str | None = None) -> int:
     args = build_parser().parse_args(argv)
-    return common.run_cli(lambda: evaluate(args, Path(default_log_root) if default_log_root else None), PROG)
+    return common.run_cli(
+        lambda: evaluate(args, Path(default_log_root) if default_log_root else None), PROG, args.verbose
+    )
 
 
 if __name__ == "__main__":

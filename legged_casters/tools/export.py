@@ -318,7 +318,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog=PROG,
         description="Export a checkpoint's actor to TorchScript + ONNX with deployment metadata.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=common.HelpFormatter,
     )
     common.add_run_selection_flags(p)
     p.add_argument("--out", help="output folder (default: <run>/exported)")
@@ -363,4 +363,6 @@ def export(args: argparse.Namespace, default_log_root: Path | None) -> int:
 
 def main(argv: list[str] | None = None, default_log_root: Path | str | None = None) -> int:
     args = build_parser().parse_args(argv)
-    return common.run_cli(lambda: export(args, Path(default_log_root) if default_log_root else None), PROG)
+    return common.run_cli(
+        lambda: export(args, Path(default_log_root) if default_log_root else None), PROG, args.verbose
+    )

@@ -109,6 +109,11 @@ def _resolve_source(args: argparse.Namespace, default_log_root: Path | None) -> 
         raise UsageError(f"--policy {args.policy!r}: expected zero, random, or an exported policy.pt / policy.onnx")
     if not path.is_file():
         raise UsageError(f"--policy {path}: no such file")
+    if path.suffix == ".pt" and common.is_training_checkpoint(path):
+        # A training checkpoint names its run: play it as --load_run <its folder> --checkpoint <it>.
+        print(f"[{PROG}] {path} is a training checkpoint: playing it from its run {path.parent}")
+        args.policy, args.load_run, args.checkpoint = None, str(path.parent), str(path)
+        return _resolve_source(args, default_log_root)
     exp = common.read_export(path, args.task)
     task, spec, env_cfg, train_cfg = exp.task, exp.spec, exp.env_cfg, exp.train_cfg
     shipped = path.resolve().parent.parent == common.SHIPPED_POLICIES
@@ -116,8 +121,10 @@ def _resolve_source(args: argparse.Namespace, default_log_root: Path | None) -> 
         out = Path(args.out)
     elif shipped:  # never write into resources/
         out = root / spec.train_cfg.experiment_name / "play_shipped"
-    else:
-        out = path.parent / "play"
+    elif (path.parent.parent / common.RUN_FILE).is_file():  # <run>/exported/: next to the run's own plays
+        out = path.parent.parent / "play"
+    else:  # never into the export folder (the thing one copies to a robot)
+        out = root / spec.train_cfg.experiment_name / f"play_{path.parent.name}"
     kind = "torchscript" if path.suffix == ".pt" else "onnx"
     return PolicySource(kind, task, spec, env_cfg, train_cfg, out, path.stem, path=path, obs_dim=exp.obs_dim)
 
@@ -136,7 +143,11 @@ def _make_policy(src: PolicySource, env) -> Callable:
         try:
             module = torch.jit.load(str(src.path), map_location="cpu")
         except RuntimeError as err:
-            raise CheckpointError(f"{src.path} is not a TorchScript policy: {str(err).splitlines()[0]}") from None
+            raise CheckpointError(
+                f"{src.path} cannot be loaded as an exported TorchScript policy: the file is damaged or was not "
+                "written by export.py",
+                str(err),
+            ) from None
         return lambda obs: module(obs["policy"])
     if src.kind == "onnx":
         import onnxruntime as ort
@@ -144,7 +155,10 @@ def _make_policy(src: PolicySource, env) -> Callable:
         try:
             sess = ort.InferenceSession(str(src.path), providers=["CPUExecutionProvider"])
         except Exception as err:
-            raise CheckpointError(f"{src.path} is not a readable ONNX policy: {err}") from None
+            raise CheckpointError(
+                f"{src.path} cannot be loaded as an ONNX policy: the file is damaged or was not written by export.py",
+                str(err),
+            ) from None
         name = sess.get_inputs()[0].name
         return lambda obs: torch.from_numpy(sess.run(None, {name: obs["policy"].cpu().numpy()})[0])
     if src.kind == "zero":
@@ -257,7 +271,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog=PROG,
         description="Run a policy on a few robots with scripted commands: video + plots, or the viewer.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=common.HelpFormatter,
     )
     common.add_run_selection_flags(p)
     p.add_argument(
@@ -279,11 +293,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--headless", action="store_true", help="video + plots even with a display")
     p.add_argument("--viewer", action="store_true", help="MuJoCo's interactive viewer (needs a display)")
     p.add_argument("--no_video", action="store_true", help="headless: write only the plots")
-    p.add_argument("--width", type=int, default=640)
-    p.add_argument("--height", type=int, default=480)
+    p.add_argument("--width", type=int, default=640, help="video width in pixels")
+    p.add_argument("--height", type=int, default=480, help="video height in pixels")
     p.add_argument("--fps", type=int, default=25, help="video frames per second (real time)")
     p.add_argument("--fast_render", action="store_true", help="no shadows or reflections (~3x faster on a CPU)")
-    p.add_argument("--out", help="output folder (default: <run>/play)")
+    p.add_argument(
+        "--out",
+        help="output folder (default: <run>/play; for an export outside a run or the shipped policy: "
+        "logs/<experiment>/play_<folder>)",
+    )
     common.add_env_set_flag(p)
     return p
 
@@ -428,7 +446,7 @@ def _run(args, src: PolicySource, env, policy, profile: Profile, headless: bool,
 
     data = rec.arrays()
     np.savez_compressed(out / f"{prefix}_data.npz", **data)
-    paths = write_plots(data, out, prefix, title, dt)
+    paths = [*write_plots(data, out, prefix, title, dt), out / f"{prefix}_data.npz"]
     if renderer is not None:
         paths.insert(0, video_path)
     err = np.abs(data["measured"] - data["command"]).mean(axis=0)
@@ -444,4 +462,4 @@ def _run(args, src: PolicySource, env, policy, profile: Profile, headless: bool,
 
 def main(argv: list[str] | None = None, default_log_root: Path | str | None = None) -> int:
     args = build_parser().parse_args(argv)
-    return common.run_cli(lambda: play(args, Path(default_log_root) if default_log_root else None), PROG)
+    return common.run_cli(lambda: play(args, Path(default_log_root) if default_log_root else None), PROG, args.verbose)

@@ -2,8 +2,8 @@
 
     python train.py --task go2_flat --max_iterations 300 --set commands.ranges.lin_vel_x=[-2,2]
 
-Each run lives in logs/<experiment>/<YYYY-mm-dd_HH-MM-SS>_<run_name>/: model_<it>.pt
-checkpoints, TensorBoard events, env.yaml and train.yaml, run.yaml (task, experiment),
+Each run lives in logs/<experiment>/<YYYY-mm-dd_HH-MM-SS>_<run_name>/: model_<n>.pt
+checkpoints (the policy after n iterations), TensorBoard events, env.yaml and train.yaml, run.yaml (task, experiment),
 git.yaml + git.diff (code state), command.txt (every invocation, resumes appended).
 """
 
@@ -15,6 +15,7 @@ import datetime
 import io
 import math
 import os
+import re
 import statistics
 import sys
 import time
@@ -35,13 +36,31 @@ PROG = "train.py"
 
 class CheckpointingRunner(OnPolicyRunner):
     """OnPolicyRunner whose checkpoints are written atomically and carry the env's state
-    (curriculum) and the task name, so that a resume restores them."""
+    (curriculum) and the task name, so that a resume restores them.
+
+    Iterations are counted as they are done, from 1: model_<n>.pt is the policy after n
+    iterations, written every `save_interval` iterations and after the last one; the
+    progress line says "it n/total". (rsl_rl's own numbering starts at 0 and would save
+    model_0.pt, model_50.pt, ... and model_<total - 1>.pt.)"""
 
     def __init__(self, env, train_cfg: dict, log_dir: str | None, device: str, task: str):
         self.task = task
+        self.last_iteration_logged = False
         super().__init__(env, train_cfg, log_dir=log_dir, device=device)
 
+    def completed_iterations(self) -> int:
+        return self.current_learning_iteration + 1
+
     def save(self, path: str, infos: dict | None = None) -> None:
+        """rsl_rl's own calls (its 0-based model_<index>.pt) are replaced by model_<n>.pt
+        from the progress hook; only its final save, after the last iteration, is kept."""
+        if common.CHECKPOINT_RE.match(os.path.basename(path)):
+            if not self.last_iteration_logged:
+                return
+            path = os.path.join(os.path.dirname(path), f"model_{self.completed_iterations()}.pt")
+        self.write_checkpoint(path, infos)
+
+    def write_checkpoint(self, path: str, infos: dict | None = None) -> None:
         saved = self.alg.save()
         saved["iter"] = self.current_learning_iteration
         saved["infos"] = {
@@ -78,7 +97,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog=PROG,
         description="Train a policy with PPO (rsl_rl) on a registered task.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=common.HelpFormatter,
     )
     p.add_argument("--task", help="registered task (default: caster_omni when registered, else the first)")
     p.add_argument("--num_envs", type=int, help="parallel envs (default: the env's: 512 on CPU, 4096 on Warp/CUDA)")
@@ -93,6 +112,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--experiment_name", help="folder under the log root (default: the task's train config)")
     p.add_argument("--run_name", help="suffix of the run folder name")
     p.add_argument("--log_root", help=f"root of the run folders (default: ${common.LOG_ROOT_ENV} or <repo>/logs)")
+    common.add_verbose_flag(p)
     common.add_env_set_flag(p)
     p.add_argument(
         "--train-set",
@@ -125,6 +145,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 BEST_CHECKPOINT = "model_best.pt"
+ITERATION_RE = re.compile(r"Learning iteration (\d+)/(\d+)")
 """The checkpoint with the lowest evaluation score so far (`--checkpoint best`)."""
 
 
@@ -149,14 +170,17 @@ def _progress_hook(runner: CheckpointingRunner, console: str, task: str, evaluat
             best[0] = float(torch.load(previous, weights_only=True)["infos"]["eval_score"])
 
     def log(**kw):
-        if console == "line":
-            with contextlib.redirect_stdout(io.StringIO()):
-                original(**kw)
-        else:
+        it, start_it, total_it = kw["it"], kw["start_it"], kw["total_it"]
+        report = io.StringIO()
+        with contextlib.redirect_stdout(report):
             original(**kw)
+        if console == "block":  # rsl_rl counts from 0; say the iteration's number as ours does
+            print(ITERATION_RE.sub(lambda m: f"Learning iteration {it + 1}/{m.group(2)}", report.getvalue()), end="")
         if logger.writer is None:
             return
-        it, start_it, total_it = kw["it"], kw["start_it"], kw["total_it"]
+        runner.last_iteration_logged = it + 1 == total_it
+        if (it + 1) % runner.cfg["save_interval"] == 0 and not runner.last_iteration_logged:
+            runner.write_checkpoint(os.path.join(logger.log_dir, f"model_{it + 1}.pt"))
         it_time = kw["collect_time"] + kw["learn_time"]
         done = it + 1 - start_it
         eta = logger.tot_time / max(done, 1) * (total_it - it - 1)
@@ -178,7 +202,7 @@ def _progress_hook(runner: CheckpointingRunner, console: str, task: str, evaluat
             score = eval_score(last_eval)
             if score < best[0]:  # keep the policy the evaluation liked best: model_best.pt
                 best[0] = score
-                runner.save(
+                runner.write_checkpoint(
                     os.path.join(logger.log_dir, BEST_CHECKPOINT), {"eval": dict(last_eval), "eval_score": score}
                 )
             logger.writer.add_scalar("Eval/score", score, it)
@@ -285,10 +309,12 @@ def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Pa
     evaluator = None
     try:
         runner = CheckpointingRunner(env, rsl_cfg, log_dir=log_dir, device=device, task=task)
-        runner.logger.git_status_repos = []  # the code state is ours to record (git.yaml, git.diff)
+        # The code state is ours to record (git.yaml, git.diff); rsl_rl's own would add an empty git/ folder.
+        runner.logger.git_status_repos = []
+        runner.logger._store_code_state = list
         if ckpt is not None:
             runner.load_checkpoint(ckpt, ckpt_path)
-            print(f"[{PROG}] resumed {ckpt_path} at iteration {runner.current_learning_iteration}")
+            print(f"[{PROG}] resumed {ckpt_path} after {runner.current_learning_iteration} iterations")
         if rank == 0:
             _write_run_files(run_dir, task, experiment, env_cfg, train_cfg, argv, ckpt_path)
             print(f"[{PROG}] run folder {run_dir}")
@@ -312,10 +338,15 @@ def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Pa
     if rank == 0:
         last = common.checkpoints(run_dir)[-1][1]
         print(f"[{PROG}] done: {last}")
-        print(f"[{PROG}] watch: tensorboard --logdir {root}    play: python play.py --task {task} --load_run {run_dir}")
+        logdir = root if root in run_dir.parents else run_dir  # a resumed run given by its own path
+        print(
+            f"[{PROG}] watch: tensorboard --logdir {logdir}    play: python play.py --task {task} --load_run {run_dir}"
+        )
     return common.EXIT_OK
 
 
 def main(argv: list[str] | None = None, default_log_root: Path | str | None = None) -> int:
     args = build_parser().parse_args(argv)
-    return common.run_cli(lambda: train(args, argv, Path(default_log_root) if default_log_root else None), PROG)
+    return common.run_cli(
+        lambda: train(args, argv, Path(default_log_root) if default_log_root else None), PROG, args.verbose
+    )
