@@ -220,3 +220,22 @@ def test_sim_robot_drives_wheels_as_velocity_servos():
     # A 12-joint command is refused by the 16-joint robot.
     r.on_command(P.JointCommand(P.CommandMode.POLICY, [0.0] * 12, [0.0] * 12, [0.0] * 12, 1, s.next_header()).encode())
     assert r.rejected["malformed"] == 1
+
+
+def test_evaluation_asks_each_task_only_what_it_is_trained_for():
+    from legged_casters.tools import evaluate
+
+    wheel = registry.get_task("go2_wheel_flat")
+    names = {s.name for s in evaluate.applicable(evaluate.FULL, wheel.env_class, wheel.env_cfg)}
+    assert {"vx +0.5", "vx -0.5", "vx +1.0", "vx -1.0", "wz +0.8", "wz -0.8", "random+pushes"} <= names
+    assert not names & {"vy +0.4", "vy -0.4", "vx +2.0", "mode front_wheel"}  # no vy, beyond 1.5 m/s, no modes
+    caster = registry.get_task("caster_omni")
+    assert evaluate.applicable(evaluate.FULL, caster.env_class, caster.env_cfg) == evaluate.FULL
+    checks = dict((n, ok) for n, ok, _ in evaluate.verdict([_result("vx +1.0", 0.12)], "go2_wheel_flat"))
+    assert checks == {"vx +1.0: |vx error| <= 0.1": False}  # issue 10's bar for the wheel robot
+
+
+def _result(name, err):
+    from legged_casters.tools.evaluate import ScenarioResult
+
+    return ScenarioResult(name, "track", (1.0, 0.0, 0.0), err={"vx": err, "vy": 0.0, "wz": 0.0})

@@ -119,16 +119,19 @@ EVAL_SETTINGS = {
 
 
 def applicable(scenarios, env_class, env_cfg) -> tuple[Scenario, ...]:
-    """The scenarios a task can be asked to do: none that commands an axis the task
-    never commands (its range is [0, 0], e.g. vy for the wheel robot), no propulsion-mode
-    scenario for a task without modes."""
-    ranges = env_cfg.commands.ranges
-    fixed = [tuple(r) == (0.0, 0.0) for r in (ranges.lin_vel_x, ranges.lin_vel_y, ranges.ang_vel_yaw)]
+    """The scenarios a task can be asked to do: none that commands more than the task is
+    ever commanded in training (its command ranges, vx up to the curriculum's limit;
+    e.g. no vy for the wheel robot, whose range is [0, 0]), no propulsion-mode scenario
+    for a task without modes."""
+    cmd = env_cfg.commands
+    limits = [list(cmd.ranges.lin_vel_x), list(cmd.ranges.lin_vel_y), list(cmd.ranges.ang_vel_yaw)]
+    if cmd.curriculum:
+        limits[0] = [min(limits[0][0], cmd.max_lin_vel_x[0]), max(limits[0][1], cmd.max_lin_vel_x[1])]
     keep = []
     for s in scenarios:
         if s.kind == "mode" and not hasattr(env_class, "set_mode"):
             continue
-        if any(c[a] != 0.0 and fixed[a] for _, c in s.segments for a in range(3)):
+        if any(not lo <= c[a] <= hi for _, c in s.segments for a, (lo, hi) in enumerate(limits)):
             continue
         keep.append(s)
     return tuple(keep)
