@@ -154,6 +154,13 @@ def test_export_metadata_and_bridge_commands(tmp_path):
     assert run, [c.mode for c in cmds]
     np.testing.assert_allclose(run[-1].dq[12:], [0.9 / go2.DRIVE_WHEEL_RADIUS] * 4, rtol=1e-4)
     assert run[-1].kp[12:] == [0.0] * 4
+    # The operator's default propulsion mode is accepted by a policy without modes; others are refused.
+    ops = P.Sender()
+    for prop in (P.PropulsionMode.FOUR_WHEEL, P.PropulsionMode.FRONT_WHEEL):
+        msg = P.OperatorCommand(vx=0.3, propulsion=prop, header=ops.next_header())
+        bridge.on_operator(msg.encode())
+    assert bridge.received_operator == 1 and bridge.rejected["out_of_range"] == 1
+    assert bridge.commands[0] == pytest.approx(0.3)
     # A 12-joint state is refused (counted), never used.
     bridge.on_state(P.RobotState([1.0, 0, 0, 0], [0.0] * 3, [0.0] * 12, [0.0] * 12, header=s.next_header()).encode())
     assert bridge.rejected["malformed"] == 1

@@ -113,6 +113,8 @@ class Bridge:
         self.damp_kd = np.full(self.n, float(config.damping_kd))
         modes = meta.propulsion_modes
         self.mode_masks = {m: np.asarray(modes[m.key], np.float64) for m in P.PropulsionMode if m.key in modes}
+        if not self.mode_masks:  # a policy without propulsion modes (wheel robot, point feet): the default only
+            self.mode_masks = {P.PropulsionMode.FOUR_WHEEL: np.zeros(4)}
 
         self._cv = threading.Condition()
         self._running = False

@@ -241,6 +241,7 @@ def run_scenarios(env, policy: Policy, scenarios=QUICK, seed: int = 0) -> list[S
         cmd = s.command(s.duration)
         if s.kind == "track" and cmd[0] != 0.0 and cmd[1] == 0.0 and cmd[2] == 0.0:
             r.extra["cot"] = cost_of_transport(env, power_log[k0:k1, cols[0]], pos_log[k0:k1, cols[0]])
+            r.extra["power_w"] = float(power_log[k0:k1, cols[0]].mean())
         if s.kind == "step":
             t_step = s.segments[-1][0]
             ks = int(round(t_step / env.dt))
