@@ -183,14 +183,28 @@ class LeggedEnv(VecEnv):
         return {group: sum(dim for _, dim, _ in layout) for group, layout in self.obs_layout.items()}
 
     # --- state ------------------------------------------------------------------------
-    def sensor_values(self, names: tuple[str, ...]) -> torch.Tensor:
-        """Named sensors' values side by side, (num_envs, total dim)."""
+    def _sensor_columns(self, names: tuple[str, ...]) -> torch.Tensor:
         cols = self._sensor_cols.get(names)
         if cols is None:
             slices = [self.sim.sensor_slice(n) for n in names]
             cols = torch.tensor([i for s in slices for i in range(s.start, s.stop)], device=self.device)
             self._sensor_cols[names] = cols
-        return self.sim.sensordata[:, cols].float()
+        return cols
+
+    def sensor_values(self, names: tuple[str, ...]) -> torch.Tensor:
+        """Named sensors' values side by side, (num_envs, total dim)."""
+        return self.sim.sensordata[:, self._sensor_columns(names)].float()
+
+    def positive_power(self) -> torch.Tensor:
+        """(num_envs,) W: positive mechanical power of all actuated joints (wheels included),
+        sum over joints of max(tau dq, 0), averaged over the last step's physics substeps
+        where the backend keeps them (MuJoCo C), else at the step's end: the integrand of
+        the paper's mechanical cost of transport."""
+        sub = self.sim.substep_sensordata()
+        joints = self.layout.joints
+        tau = sub[..., self._sensor_columns(tuple(f"{j}_torque" for j in joints))]
+        dq = sub[..., self._sensor_columns(tuple(f"{j}_vel" for j in joints))]
+        return (tau * dq).clamp(min=0.0).sum(dim=-1).mean(dim=1).float()
 
     def contact_found(self, names: tuple[str, ...]) -> torch.Tensor:
         """(num_envs, len(names)) bool: does each contact sensor see a contact?"""

@@ -127,6 +127,12 @@ class SimBackend(abc.ABC):
     def sensordata(self) -> torch.Tensor:
         """(num_envs, nsensordata) sensor values (live view)."""
 
+    def substep_sensordata(self) -> torch.Tensor:
+        """(num_envs, k, nsensordata): the sensor values after each physics substep of the
+        last `step` where the backend keeps them (MuJoCo C: k = decimation), else after
+        the last substep only (k = 1). Rows of a substep before a reset are stale."""
+        return self.sensordata.unsqueeze(1)
+
     @property
     @abc.abstractmethod
     def ctrl(self) -> torch.Tensor:

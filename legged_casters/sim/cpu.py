@@ -137,6 +137,10 @@ class CpuBackend(SimBackend):
     def ctrl(self) -> torch.Tensor:
         return self._view("ctrl")
 
+    def substep_sensordata(self) -> torch.Tensor:
+        out = torch.from_numpy(self._sens_out)
+        return out if self._on_cpu else out.to(self.device)
+
     # --- simulation --------------------------------------------------------------------
     def step(self, ctrl: torch.Tensor) -> None:
         self._check_rows("ctrl", ctrl, self.num_envs, (self.nu,))

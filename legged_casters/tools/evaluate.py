@@ -223,7 +223,7 @@ def run_scenarios(env, policy: Policy, scenarios=QUICK, seed: int = 0) -> list[S
         fell = (env.terminated_buf & ~env.time_out_buf).cpu()
         falls += (fell & alive[k]).long()
         vel_log[k] = torch.cat([env.base_lin_vel[:, :2], env.base_ang_vel[:, 2:3]], dim=1).cpu()
-        power_log[k] = (env.torques * env.joint_vel).clamp(min=0.0).sum(dim=1).cpu()
+        power_log[k] = env.positive_power().cpu()
         pos_log[k] = env.base_pos[:, :2].cpu()
         if swivel_log is not None:
             swivel_log[k] = env.swivel_vel.cpu()
@@ -266,9 +266,9 @@ def run_scenarios(env, policy: Policy, scenarios=QUICK, seed: int = 0) -> list[S
 
 def cost_of_transport(env, power: torch.Tensor, xy: torch.Tensor) -> float:
     """The paper's mechanical cost of transport: positive work of all actuated joints
-    (wheels included) over weight x distance travelled. `power` (steps,) W and `xy`
-    (steps, 2) m are sampled once per policy step, so the work is integrated at the
-    policy rate (50 Hz), not at every physics step."""
+    (wheels included) over weight x distance travelled. `power` (steps,) W is each
+    policy step's mean over its physics substeps (env.positive_power: every physics
+    step on the MuJoCo C backend), `xy` (steps, 2) m the trunk's path."""
     mass = float(env.model.body_subtreemass[env.trunk_id])
     distance = float(torch.linalg.norm(xy[1:] - xy[:-1], dim=1).sum())
     work = float(power.sum()) * env.dt
