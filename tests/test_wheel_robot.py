@@ -271,3 +271,18 @@ def test_cost_of_transport_of_steady_rolling_is_the_rolling_resistance():
     cot = evaluate.cost_of_transport(env, torch.stack(power), torch.stack(xy))
     env.close()
     assert 0.02 <= cot <= 0.045, cot
+
+
+def test_cot_table_measures_each_shipped_robot_the_same_way(capsys):
+    from legged_casters.tools import cot
+
+    assert cot.main(["--duration", "2.0", "--settle", "1.0"]) == 0
+    out = capsys.readouterr().out
+    rows = [line for line in out.splitlines() if line.startswith("| ") and "robot" not in line]
+    robots = {line.split("|")[1].strip() for line in rows}
+    assert {"passive casters (ours)", "driving wheels"} <= robots
+    for line in rows:
+        value = float(line.split("|")[5])
+        assert 0.0 < value < 1.0  # a cost of transport, not inf or nan
+    assert cot.main(["--settle", "5", "--duration", "2"]) == 2
+    assert "--settle" in capsys.readouterr().err
