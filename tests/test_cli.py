@@ -53,7 +53,7 @@ def run(tmp_path_factory):
     """A 2-iteration run, then resumed for 1 more iteration. Returns (root, run_dir, outputs)."""
     root = tmp_path_factory.mktemp("logs")
     rc, out1 = _train(
-        root, "--max_iterations", "2", "--run_name", "tiny", "--set", "commands.ranges.lin_vel_y=[-0.3,0.3]", *SMALL
+        root, "--max_iterations", "2", "--run_name", "tiny", "--set", "commands.ranges.lin_vel_y=[-0.4,0.4]", *SMALL
     )
     assert rc == 0, out1
     (run_dir,) = (root / TASK).iterdir()
@@ -91,7 +91,7 @@ def test_run_folder_holds_checkpoints_configs_git_state_and_events(run):
     assert not [n for n in names if n.endswith(".tmp")]
     env_cfg = load_yaml(type(registry.get_task(TASK).env_cfg), run_dir / "env.yaml")
     assert env_cfg.num_envs == NUM_ENVS and env_cfg.sim.backend == "cpu"
-    assert env_cfg.commands.ranges.lin_vel_y == (-0.3, 0.3)  # --set landed in the run's config
+    assert env_cfg.commands.ranges.lin_vel_y == (-0.4, 0.4)  # --set landed in the run's config
     train_cfg = load_yaml(type(registry.get_task(TASK).train_cfg), run_dir / "train.yaml")
     assert train_cfg.num_steps_per_env == STEPS and train_cfg.policy.actor_hidden_dims == (64, 64)
     git = yaml.safe_load((run_dir / "git.yaml").read_text())
