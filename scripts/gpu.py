@@ -7,6 +7,7 @@
     python3 scripts/gpu.py stash               # there, in every call but the last: keep the carried wheels
     python3 scripts/gpu.py run --out $OUT      # there, in the last call: install, then every stage
     python scripts/gpu.py run --cpu --out DIR  # anywhere: the same stages, Warp on the CPU, tiny sizes
+    python scripts/gpu.py report gpu_check.json  # the table again, from a run's JSON
 
 `run` writes DIR/gpu_check.json (everything measured), DIR/gpu_check.txt (a table) and
 DIR/gpu_check.log (the stages' output, cut to their tails). The stages and their time
@@ -93,6 +94,13 @@ def cmd_run(args) -> int:
     return 0
 
 
+def cmd_report(args) -> int:
+    import json
+
+    print(gpu_check.summary_table(json.loads(Path(args.json).read_text())))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="command", required=True)
@@ -117,6 +125,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--stash", default=gpu_wheels.DEFAULT_STASH)
     run.add_argument("--site", default=gpu_wheels.DEFAULT_SITE)
     run.add_argument("--no-install", action="store_true", help="use this interpreter's packages as they are")
+    rep = sub.add_parser("report", help="print the table of a run's gpu_check.json")
+    rep.add_argument("json")
     return p
 
 
@@ -124,7 +134,14 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.command == "run" and args.budget_s is None:
         args.budget_s = 300.0 if args.cpu else 420.0
-    return {"prepare": cmd_prepare, "stash": cmd_stash, "install": cmd_install, "run": cmd_run}[args.command](args)
+    commands = {
+        "prepare": cmd_prepare,
+        "stash": cmd_stash,
+        "install": cmd_install,
+        "run": cmd_run,
+        "report": cmd_report,
+    }
+    return commands[args.command](args)
 
 
 if __name__ == "__main__":

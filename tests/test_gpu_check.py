@@ -40,6 +40,10 @@ def test_cpu_run_has_every_stage(cpu_run):
         assert stage["status"] == expected, (name, stage.get("error"), stage.get("log_tail", "")[-1500:])
         assert stage["seconds"] is not None
     assert (out / "gpu_check.txt").read_text() in stdout
+    report = [sys.executable, str(REPO / "scripts" / "gpu.py"), "report", str(out / "gpu_check.json")]
+    assert (
+        subprocess.run(report, capture_output=True, text=True, check=True).stdout == (out / "gpu_check.txt").read_text()
+    )
     assert (out / "gpu_check.log").stat().st_size > 0
 
 
