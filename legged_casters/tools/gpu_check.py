@@ -671,7 +671,10 @@ def worker(work: Path, stages: list[str], settings: Settings, deadline: float) -
                 fn = STAGE_FUNCS[stage]
                 args = (settings, work, report, timeout) if stage in NEEDS_TIMEOUT else (settings, work, report)
                 result = fn(*args)
-                status = "skipped" if isinstance(result, dict) and "skipped" in result else "ok"
+                status = "skipped" if "skipped" in result else "ok"
+                if result.get("rc") not in (None, 0):  # a tool that ran to its end with an error code
+                    status = "failed"
+                    record["error"] = f"exit code {result['rc']} (see its log)"
                 record.update(status=status, result=result)
             except Exception as err:
                 traceback.print_exc()
@@ -748,7 +751,7 @@ def run_check(
         "mode": "cpu" if cpu else "gpu",
         "budget_s": budget_s,
         "host": os.uname().nodename,
-        "git": _git_head() or "at prepare: " + str(((install_result or {}).get("prepared") or {}).get("git")),
+        "git": _git_head() or f"{((install_result or {}).get('prepared') or {}).get('git')} (at prepare)",
         "settings": dataclasses.asdict(settings),
         "stages": {},
     }
@@ -853,7 +856,8 @@ def summary_table(results: dict) -> str:
     stages = results.get("stages", {})
     lines = [
         f"GPU check ({results.get('mode')}), started {results.get('started')} on {results.get('host')}, "
-        f"git {str(results.get('git'))[:10]}, {results.get('wall_s', 0):.0f} s of a "
+        f"git {str(results.get('git'))[:12]}{' (at prepare)' if 'prepare' in str(results.get('git')) else ''}, "
+        f"{results.get('wall_s', 0):.0f} s of a "
         f"{results.get('budget_s'):.0f} s budget"
     ]
     m = stages.get("machine", {}).get("result") or {}
