@@ -248,7 +248,8 @@ def _progress_hook(
             per_joint = std.reshape(-1, len(joints))[0].tolist()
             for name, value in zip(joints, per_joint, strict=True):
                 logger.writer.add_scalar(f"Noise/std_{name}", value, it)
-        if evaluator is not None and eval_every and ((it + 1) % eval_every == 0 or it + 1 == total_it or done == 1):
+        last = it + 1 == total_it or stop
+        if evaluator is not None and eval_every and ((it + 1) % eval_every == 0 or last or done == 1):
             t0 = time.time()
             last_eval.clear()
             last_eval.update(evaluator(runner.alg.get_policy()))
