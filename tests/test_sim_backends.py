@@ -19,6 +19,11 @@ from legged_casters.robot import go2
 from legged_casters.robot.build import MODEL_FILES
 from legged_casters.sim.base import RANDOMIZABLE_FIELDS, make_backend, physics_model
 from legged_casters.sim.cpu import CpuBackend
+from legged_casters.sim.parity import BOUNDS, parity_errors
+from legged_casters.sim.parity import joint_addresses as _adr
+from legged_casters.sim.parity import perturbed_stand as _perturbed_stand
+from legged_casters.sim.parity import random_targets as _targets
+from legged_casters.sim.parity import rollout as _rollout
 
 DECIMATION = 10
 BACKENDS = ("cpu", "warp")
@@ -29,40 +34,10 @@ def model() -> mujoco.MjModel:
     return physics_model(MODEL_FILES["caster"])
 
 
-def _adr(m: mujoco.MjModel, joints, kind: str) -> list[int]:
-    table = m.jnt_qposadr if kind == "q" else m.jnt_dofadr
-    return [int(table[m.joint(j).id]) for j in joints]
-
-
-def _perturbed_stand(m: mujoco.MjModel, n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
-    g = torch.Generator().manual_seed(seed)
-    qpos = torch.from_numpy(m.key_qpos[0].copy()).repeat(n, 1)
-    qvel = torch.zeros(n, m.nv, dtype=torch.float64)
-    qpos[:, _adr(m, go2.ACTUATED_JOINTS, "q")] += 0.01 * torch.randn(n, 12, generator=g, dtype=torch.float64)
-    qvel[:, _adr(m, go2.ACTUATED_JOINTS, "v")] = 0.05 * torch.randn(n, 12, generator=g, dtype=torch.float64)
-    return qpos, qvel
-
-
 def _tiled(m: mujoco.MjModel, name: str, n: int) -> torch.Tensor:
     """The nominal value of model field `name`, repeated for n envs."""
     value = torch.from_numpy(np.array(getattr(m, name), dtype=np.float64))
     return value.unsqueeze(0).repeat(n, *[1] * value.ndim)
-
-
-def _targets(steps: int, n: int, std: float, seed: int) -> torch.Tensor:
-    g = torch.Generator().manual_seed(seed)
-    nominal = torch.tensor(go2.default_joint_positions(), dtype=torch.float64)
-    return nominal + std * torch.randn(steps, n, 12, generator=g, dtype=torch.float64)
-
-
-def _rollout(backend, qpos, qvel, targets) -> tuple[torch.Tensor, torch.Tensor]:
-    backend.reset(None, qpos, qvel)
-    qs, vs = [backend.qpos.double().clone()], [backend.qvel.double().clone()]
-    for ctrl in targets:
-        backend.step(ctrl.to(backend.ctrl.dtype))
-        qs.append(backend.qpos.double().clone())
-        vs.append(backend.qvel.double().clone())
-    return torch.stack(qs), torch.stack(vs)
 
 
 def test_factory_rejects_unknown_kind(model):
@@ -107,27 +82,13 @@ def test_cpu_warp_parity(model):
     rad/s, all qpos (including swivel and wheel angles) 2.2e-5, all qvel 9.1e-4.
     Asserted with a margin of >= 20x. Beyond ~40 steps the contact dynamics amplify
     float32 round-off (joint velocities differ by 0.3 rad/s at step 50)."""
-    n, steps = 4, 25
-    qpos, qvel = _perturbed_stand(model, n, seed=0)
-    targets = _targets(steps, n, 0.05, seed=3)
-    cpu = make_backend("cpu", model, n, DECIMATION)
-    warp = make_backend("warp", model, n, DECIMATION, "cpu")
-    qc, vc = _rollout(cpu, qpos, qvel, targets)
-    qw, vw = _rollout(warp, qpos, qvel, targets)
-    assert not warp.contact_overflow()
-    cpu.close()
-    qa, va = _adr(model, go2.ACTUATED_JOINTS, "q"), _adr(model, go2.ACTUATED_JOINTS, "v")
-
+    err = parity_errors(model, n=4, steps=25, warp_device="cpu")
+    assert not err["contact_overflow"]
     # the trajectories move: the targets are tracked, the test is not comparing two still robots
-    assert (qc[:, :, qa] - qc[0, :, qa]).abs().max() > 0.02
-    assert torch.isfinite(qc).all() and torch.isfinite(qw).all()
-
-    assert (qc[:, :, 0:3] - qw[:, :, 0:3]).abs().max() < 1e-5
-    assert (qc[:, :, 3:7] - qw[:, :, 3:7]).abs().max() < 1e-5
-    assert (qc[:, :, qa] - qw[:, :, qa]).abs().max() < 5e-5
-    assert (vc[:, :, va] - vw[:, :, va]).abs().max() < 2e-3
-    assert (qc - qw).abs().max() < 1e-3
-    assert (vc - vw).abs().max() < 2e-2
+    assert err["moved"] > 0.02
+    assert err["finite"]
+    for name, bound in BOUNDS.items():
+        assert err[name] < bound, f"{name}: |warp - cpu| up to {err[name]:.2e}, bound {bound:.0e}"
 
 
 @pytest.mark.parametrize("kind", BACKENDS)

@@ -51,6 +51,28 @@ class CheckpointingRunner(OnPolicyRunner):
     def completed_iterations(self) -> int:
         return self.current_learning_iteration + 1
 
+    def _configure_multi_gpu(self) -> None:
+        """rsl_rl's set-up of a torchrun launch, which hard-codes nccl and cuda:LOCAL_RANK;
+        on a CPU device the processes reduce their gradients through gloo instead."""
+        world = int(os.getenv("WORLD_SIZE", "1"))
+        if world <= 1 or str(self.device).startswith("cuda"):
+            super()._configure_multi_gpu()
+            return
+        if str(self.device) != "cpu":
+            raise ValueError(f"distributed training runs on cuda:LOCAL_RANK or cpu, not {self.device}")
+        self.gpu_world_size, self.is_distributed = world, True
+        self.gpu_local_rank = int(os.getenv("LOCAL_RANK", "0"))
+        self.gpu_global_rank = int(os.getenv("RANK", "0"))
+        if not 0 <= self.gpu_global_rank < world:
+            raise ValueError(f"RANK {self.gpu_global_rank} is outside WORLD_SIZE {world}")
+        self.cfg["multi_gpu"] = {
+            "global_rank": self.gpu_global_rank,
+            "local_rank": self.gpu_local_rank,
+            "world_size": world,
+        }
+        if not torch.distributed.is_initialized():
+            torch.distributed.init_process_group(backend="gloo", rank=self.gpu_global_rank, world_size=world)
+
     def save(self, path: str, infos: dict | None = None) -> None:
         """rsl_rl's own calls (its 0-based model_<index>.pt) are replaced by model_<n>.pt
         from the progress hook; only its final save, after the last iteration, is kept."""
@@ -102,6 +124,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--task", help="registered task (default: caster_omni when registered, else the first)")
     p.add_argument("--num_envs", type=int, help="parallel envs (default: the env's: 512 on CPU, 4096 on Warp/CUDA)")
     p.add_argument("--max_iterations", type=int, help="PPO iterations to run now (on --resume: more iterations)")
+    p.add_argument(
+        "--max_minutes",
+        type=float,
+        help="wall-time budget: stop after the iteration that reaches it (its checkpoint is the run's last)",
+    )
     p.add_argument("--seed", type=int, help="seed of env and networks (default: the train config's)")
     p.add_argument("--device", default="auto", help="torch device of the learner and env tensors: auto, cpu, cuda:N")
     p.add_argument("--sim_backend", default="auto", choices=BACKEND_KINDS, help="auto: warp on CUDA, else cpu")
@@ -144,6 +171,10 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+class BudgetReached(Exception):
+    """--max_minutes ran out: raised after the iteration's report and checkpoint."""
+
+
 BEST_CHECKPOINT = "model_best.pt"
 ITERATION_RE = re.compile(r"Learning iteration (\d+)/(\d+)")
 """The checkpoint with the lowest evaluation score so far (`--checkpoint best`)."""
@@ -155,9 +186,31 @@ def eval_score(summary: dict[str, float]) -> float:
     return sum(summary.get(k, 0.0) for k in ("vx_error", "vy_error", "wz_error")) + summary.get("falls", 0.0)
 
 
-def _progress_hook(runner: CheckpointingRunner, console: str, task: str, evaluator=None, eval_every: int = 0) -> None:
+def _budget_reached(runner: CheckpointingRunner, started: float, max_seconds: float | None) -> bool:
+    """Whether the wall-time budget is spent; in a distributed run rank 0 decides for all."""
+    if max_seconds is None:
+        return False
+    stop = time.time() - started >= max_seconds
+    if runner.is_distributed:
+        flag = torch.tensor([1.0 if stop else 0.0], device=runner.device)
+        torch.distributed.broadcast(flag, src=0)
+        stop = bool(flag.item())
+    return stop
+
+
+def _progress_hook(
+    runner: CheckpointingRunner,
+    console: str,
+    task: str,
+    evaluator=None,
+    eval_every: int = 0,
+    max_seconds: float | None = None,
+) -> None:
     """Wrap the rsl_rl logger's per-iteration report with a one-line progress summary and,
-    every `eval_every` iterations, the deterministic evaluation (TensorBoard Eval/...)."""
+    every `eval_every` iterations, the deterministic evaluation (TensorBoard Eval/...).
+    With `max_seconds`, the iteration that ends past that much wall time is the last:
+    BudgetReached is raised after its report (and on rank 0 its final checkpoint)."""
+    started = time.time()
     logger = runner.logger
     original = logger.log
     steps_per_it = runner.cfg["num_steps_per_env"] * runner.env.num_envs * logger.gpu_world_size
@@ -176,9 +229,12 @@ def _progress_hook(runner: CheckpointingRunner, console: str, task: str, evaluat
             original(**kw)
         if console == "block":  # rsl_rl counts from 0; say the iteration's number as ours does
             print(ITERATION_RE.sub(lambda m: f"Learning iteration {it + 1}/{m.group(2)}", report.getvalue()), end="")
+        stop = it + 1 < total_it and _budget_reached(runner, started, max_seconds)
         if logger.writer is None:
+            if stop:
+                raise BudgetReached(it + 1)
             return
-        runner.last_iteration_logged = it + 1 == total_it
+        runner.last_iteration_logged = it + 1 == total_it or stop
         if (it + 1) % runner.cfg["save_interval"] == 0 and not runner.last_iteration_logged:
             runner.write_checkpoint(os.path.join(logger.log_dir, f"model_{it + 1}.pt"))
         it_time = kw["collect_time"] + kw["learn_time"]
@@ -192,7 +248,8 @@ def _progress_hook(runner: CheckpointingRunner, console: str, task: str, evaluat
             per_joint = std.reshape(-1, len(joints))[0].tolist()
             for name, value in zip(joints, per_joint, strict=True):
                 logger.writer.add_scalar(f"Noise/std_{name}", value, it)
-        if evaluator is not None and eval_every and ((it + 1) % eval_every == 0 or it + 1 == total_it or done == 1):
+        last = it + 1 == total_it or stop
+        if evaluator is not None and eval_every and ((it + 1) % eval_every == 0 or last or done == 1):
             t0 = time.time()
             last_eval.clear()
             last_eval.update(evaluator(runner.alg.get_policy()))
@@ -219,6 +276,10 @@ def _progress_hook(runner: CheckpointingRunner, console: str, task: str, evaluat
             f"ETA {datetime.timedelta(seconds=int(eta))}",
             flush=True,
         )
+        if stop:
+            runner.write_checkpoint(os.path.join(logger.log_dir, f"model_{it + 1}.pt"))
+            logger.stop_logging_writer()
+            raise BudgetReached(it + 1)
 
     logger.log = log
 
@@ -260,8 +321,14 @@ def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Pa
     device = common.resolve_device(args.device, backend)
     rank = int(os.environ.get("RANK", "0"))
     world = int(os.environ.get("WORLD_SIZE", "1"))
-    if world > 1 and device != f"cuda:{int(os.environ.get('LOCAL_RANK', '0'))}":
-        raise UsageError(f"distributed training (WORLD_SIZE={world}) needs --device auto or cuda:LOCAL_RANK")
+    local = int(os.environ.get("LOCAL_RANK", "0"))
+    if world > 1 and device not in (f"cuda:{local}", "cpu"):
+        raise UsageError(
+            f"distributed training (WORLD_SIZE={world}) runs one process per GPU (--device auto or "
+            f"cuda:LOCAL_RANK) or on the CPU (--device cpu, gloo), not on {device}"
+        )
+    if args.max_minutes is not None and args.max_minutes <= 0:
+        raise UsageError(f"--max_minutes must be positive, got {args.max_minutes}")
     if args.eval_every < 0:
         raise UsageError(f"--eval_every must be 0 (off) or positive, got {args.eval_every}")
     if args.torch_threads is not None and args.torch_threads < 1:
@@ -322,9 +389,13 @@ def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Pa
             from legged_casters.tools.evaluate import DeterministicEval
 
             evaluator = DeterministicEval(spec, env_cfg)
-        _progress_hook(runner, args.console, task, evaluator, args.eval_every)
+        budget = args.max_minutes * 60.0 if args.max_minutes is not None else None
+        _progress_hook(runner, args.console, task, evaluator, args.eval_every, budget)
         try:
             runner.learn(num_learning_iterations=train_cfg.max_iterations, init_at_random_ep_len=True)
+        except BudgetReached as stop:
+            if rank == 0:
+                print(f"[{PROG}] --max_minutes {args.max_minutes:g}: stopped after iteration {stop.args[0]}")
         except KeyboardInterrupt:
             latest = common.checkpoints(run_dir)
             where = latest[-1][1] if latest else "(no checkpoint yet)"
@@ -335,6 +406,8 @@ def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Pa
         env.close()
         if evaluator is not None:
             evaluator.close()
+        if world > 1 and torch.distributed.is_initialized():
+            torch.distributed.destroy_process_group()
     if rank == 0:
         last = common.checkpoints(run_dir)[-1][1]
         print(f"[{PROG}] done: {last}")
