@@ -176,8 +176,9 @@ class BudgetReached(Exception):
 
 
 BEST_CHECKPOINT = "model_best.pt"
-ITERATION_RE = re.compile(r"Learning iteration (\d+)/(\d+)")
 """The checkpoint with the lowest evaluation score so far (`--checkpoint best`)."""
+ITERATION_RE = re.compile(r"Learning iteration (\d+)/(\d+)")
+"""rsl_rl's per-iteration report heading, renumbered from 1 in the console."""
 
 
 def eval_score(summary: dict[str, float]) -> float:
