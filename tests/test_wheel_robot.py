@@ -286,3 +286,12 @@ def test_cot_table_measures_each_shipped_robot_the_same_way(capsys):
         assert 0.0 < value < 1.0  # a cost of transport, not inf or nan
     assert cot.main(["--settle", "5", "--duration", "2"]) == 2
     assert "--settle" in capsys.readouterr().err
+
+
+def test_play_says_when_a_profile_commands_what_the_task_never_trained(tmp_path, capsys):
+    from legged_casters.tools import play
+
+    policy = build.REPO_ROOT / "resources" / "policies" / "go2_wheel_flat" / "policy.pt"
+    argv = ["--policy", str(policy), "--headless", "--no_video", "--profile", "slalom", "--duration", "0.2"]
+    assert play.main([*argv, "--num_envs", "1", "--out", str(tmp_path)]) == 0
+    assert "commands vy +0.40, outside what go2_wheel_flat is trained for [0, 0]" in capsys.readouterr().out

@@ -330,6 +330,7 @@ def play(args: argparse.Namespace, default_log_root: Path | None) -> int:
             detail = "; ".join(f"{k}: {v}" for k, v in errors.items())
             raise UsageError(f"{render.INSTALL_HINT} ({detail})")
     profile = Profile(args.profile, args.duration or DEFAULT_DURATION[args.profile], tuple(args.cmd))
+    _warn_untrained_commands(profile, src)
 
     # --- simulation --------------------------------------------------------------------------------
     common.limit_cpu_threads(env_cfg.sim.device if args.sim_backend == "warp" else "cpu")
@@ -339,6 +340,28 @@ def play(args: argparse.Namespace, default_log_root: Path | None) -> int:
         return _run(args, src, env, policy, profile, headless, gl_backend)
     finally:
         env.close()
+
+
+def _warn_untrained_commands(profile: Profile, src: PolicySource) -> None:
+    """Say so when the profile commands more than the task is trained for (e.g. vy for
+    the wheel robot, whose axles cannot move it sideways); play it anyway."""
+    ranges = src.env_cfg.commands.ranges
+    limits = (ranges.lin_vel_x, ranges.lin_vel_y, ranges.ang_vel_yaw)
+    if src.env_cfg.commands.curriculum:
+        limits = (src.env_cfg.commands.max_lin_vel_x, *limits[1:])
+    worst = [0.0, 0.0, 0.0]
+    for k in range(int(profile.duration / 0.1) + 1):
+        cmd, _ = profile.at(k * 0.1)
+        for a, ((lo, hi), c) in enumerate(zip(limits, cmd, strict=True)):
+            if not lo <= c <= hi and abs(c) > abs(worst[a]):
+                worst[a] = c
+    for a, name in enumerate(("vx", "vy", "wz")):
+        if worst[a]:
+            lo, hi = limits[a]
+            print(
+                f"[{PROG}] note: profile {profile.name} commands {name} {worst[a]:+.2f}, outside what {src.task} "
+                f"is trained for [{lo:g}, {hi:g}]"
+            )
 
 
 def _apply(env, cmd, mode) -> None:
