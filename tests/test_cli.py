@@ -380,7 +380,8 @@ def test_play_flags_are_checked_before_the_simulation(no_simulation, tmp_path, c
     argv = ["--task", TASK, "--log_root", str(tmp_path), "--headless"]
     assert play.main([*argv, "--policy", "zero", "--profile", "modes"]) == common.EXIT_USAGE
     assert "needs a task with propulsion modes" in capsys.readouterr().err
-    assert play.main(argv) == common.EXIT_USAGE  # nothing trained under this root
+    # nothing trained under this root, and a checkpoint asked for (no fallback to a shipped policy)
+    assert play.main([*argv, "--checkpoint", "5"]) == common.EXIT_USAGE
     assert "no run with a checkpoint" in capsys.readouterr().err
     assert play.main([*argv, "--policy", str(tmp_path / "missing.onnx")]) == common.EXIT_USAGE
     assert "no such file" in capsys.readouterr().err
