@@ -21,6 +21,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import mujoco
 import numpy as np
 import torch
 
@@ -88,6 +89,8 @@ def run_policy(task: str, duration: float, command_at: Callable, mode_at: Callab
         log: dict[str, list] = {k: [] for k in ("cmd", "vel", "pos", "power", "fell")}
         extra: dict[str, list] = {}
         mode = mode_at(0.0) if mode_at is not None else None
+        bases = _caster_base_sites(env)
+        kin = mujoco.MjData(env.model) if bases else None
         fallen = False
         for k in range(steps):
             t = k * env.dt
@@ -109,6 +112,9 @@ def run_policy(task: str, duration: float, command_at: Callable, mode_at: Callab
             log["power"].append(float(env.positive_power()[0]))
             log["fell"].append(fallen)
             extra.setdefault("joint_pos", []).append(env.joint_pos[0].cpu().numpy())
+            extra.setdefault("qpos", []).append(env.sim.qpos[0].cpu().double().numpy())
+            if kin is not None:
+                extra.setdefault("base_vel", []).append(_site_velocities(env, kin, bases))
             extra.setdefault("yaw", []).append(float(yaw_from_quat(env.base_quat)[0]))
             if hasattr(env, "caster_state"):
                 for key, value in env.caster_state().items():
@@ -127,6 +133,24 @@ def run_policy(task: str, duration: float, command_at: Callable, mode_at: Callab
         )
     finally:
         env.close()
+
+
+def _caster_base_sites(env) -> list[int]:
+    names = [f"{leg}_caster_base" for leg in LEGS]
+    found = [mujoco.mj_name2id(env.model, mujoco.mjtObj.mjOBJ_SITE, n) for n in names]
+    return found if min(found) >= 0 else []
+
+
+def _site_velocities(env, data, sites: list[int]) -> np.ndarray:
+    """(len(sites), 3) world-frame linear velocity of each site (the caster bases)."""
+    data.qpos[:] = env.sim.qpos[0].cpu().double().numpy()
+    data.qvel[:] = env.sim.qvel[0].cpu().double().numpy()
+    mujoco.mj_forward(env.model, data)
+    out, res = np.zeros((len(sites), 3)), np.zeros(6)
+    for i, site in enumerate(sites):
+        mujoco.mj_objectVelocity(env.model, data, mujoco.mjtObj.mjOBJ_SITE, site, res, 0)
+        out[i] = res[3:]
+    return out
 
 
 def _plt():
@@ -215,6 +239,10 @@ def fig6(out: Path, quick: bool) -> Result:
         ax.axvline(t2, color="grey", lw=0.8, ls=":")
         ax.grid(alpha=0.3)
     name = _save(fig, out, "fig6_posture.png")
+    figures = [(name, "Fig. 6: command and speed, cos(phi), theta_diffz, theta_diffphi per caster (step at 6 s)")]
+    strip = _frame_strip(tr, [t2 - 0.2 + 0.2 * k for k in range(8)], t2, out, "fig7_strip.png")
+    if strip:
+        figures.append((strip, "Fig. 7: the robot every 0.2 s, from 0.2 s before the reversal (time after it)"))
     after = tr.t > t2
     errors = np.maximum(ex["theta_diffz"].max(axis=1), ex["theta_diffphi"].max(axis=1))
     below = np.nonzero(after & (errors < math.pi / 2))[0]
@@ -235,14 +263,40 @@ def fig6(out: Path, quick: bool) -> Result:
                 "Fig. 6 forward motion after the step", "-", f"{sign:.2f} s", "time after the step until vx > 0.05 m/s"
             ),  # fmt: skip
         ],
-        [(name, "Fig. 6: command and speed, cos(phi), theta_diffz, theta_diffphi per caster (step at 6 s)")],
+        figures,
         [
             "Where ours differs: the legs re-tilt the swivel axes at once after the step (theta_diffz falls within "
             "a few steps), but the casters need about a second to swing round (theta_diffphi) while the trunk "
             "decelerates; the paper's robot did both in about 0.5 s.",
-            "Fig. 7 (a strip of rendered frames around the reversal) is not generated yet.",
+            "Fig. 7: " + ("rendered above." if strip else "not rendered: no offscreen OpenGL (EGL or OSMesa) here."),
         ],
     )
+
+
+def _frame_strip(tr: Trace, times: list[float], zero: float, out: Path, file: str) -> str | None:
+    """Render the robot at `times` side by side (one PNG, labelled in s after `zero`), or
+    None without offscreen GL."""
+    from legged_casters.robot import build
+    from legged_casters.tools import render
+
+    backend, _ = render.probe_gl_backend()
+    if backend is None:
+        return None
+    r = render.FollowRenderer(str(build.MODEL_FILES["caster"]), backend, 240, 200, fast=True)
+    try:
+        r.camera.distance, r.camera.elevation, r.camera.azimuth = 0.9, -30.0, 150.0
+        frames = []
+        for t in times:
+            k = int(np.argmin(np.abs(tr.t - t)))
+            frames.append(r.render(tr.extra["qpos"][k], f"{tr.t[k] - zero:+.1f} s"))
+    finally:
+        r.close()
+    plt = _plt()
+    fig, axes = plt.subplots(1, len(frames), figsize=(2.0 * len(frames), 1.9))
+    for ax, frame in zip(axes, frames, strict=True):
+        ax.imshow(frame)
+        ax.axis("off")
+    return _save(fig, out, file)
 
 
 def fig9(out: Path, quick: bool) -> Result:
@@ -309,15 +363,18 @@ def fig10(out: Path, quick: bool) -> Result:
     from legged_casters.envs.caster_omni import MODE_MASKS
 
     plt = _plt()
-    fig, axes = plt.subplots(2, 1, figsize=(7.5, 5.0), sharex=True)
+    fig, axes = plt.subplots(3, 1, figsize=(7.5, 7.0), sharex=True)
     for i, leg in enumerate(LEGS):
         axes[0].plot(tr.t, tr.extra["swivel_vel"][:, i], lw=0.8, label=leg)
+        axes[1].plot(tr.t, tr.extra["base_vel"][:, i, 0], lw=0.8, label=leg)
     axes[0].set_ylabel("swivel rate (rad/s)")
     axes[0].legend(fontsize=7, ncol=4)
-    axes[1].plot(tr.t, tr.cmd[:, 0], "k--", label="command")
-    axes[1].plot(tr.t, tr.vel[:, 0], label="trunk vx")
-    axes[1].set(xlabel="time (s)", ylabel="vx (m/s)")
-    axes[1].legend(fontsize=8)
+    axes[1].set_ylabel("caster base vx, world (m/s)")
+    axes[1].legend(fontsize=7, ncol=4)
+    axes[2].plot(tr.t, tr.cmd[:, 0], "k--", label="command")
+    axes[2].plot(tr.t, tr.vel[:, 0], label="trunk vx")
+    axes[2].set(xlabel="time (s)", ylabel="vx (m/s)")
+    axes[2].legend(fontsize=8)
     for ax in axes:
         for k in (0, 1, 2):
             ax.axvline(warmup + k * span, color="grey", lw=0.8, ls=":")
@@ -357,11 +414,12 @@ def fig10(out: Path, quick: bool) -> Result:
         [
             (
                 name,
-                f"Fig. 10: per-caster swivel rates and trunk speed, 4WD -> FWD -> RWD (switches at "
+                "Fig. 10: per-caster swivel rates, caster base forward velocities (world) and trunk speed, "
+                f"4WD -> FWD -> RWD (switches at "
                 f"{warmup + span:.0f} and {warmup + 2 * span:.0f} s)",
             )
         ],
-        ["The caster bases' own linear velocities (the paper's lower panels) are not recorded yet."],
+        [],
     )
 
 
@@ -439,6 +497,16 @@ def slalom(out: Path, quick: bool) -> Result:
         side = float(np.sign(follower.path_y(px)))
         d = np.hypot(tr.pos[:, 0] - px, tr.pos[:, 1]).min()
         passed.append(bool(side * tr.pos[k[0], 1] > 0 and d > clearance))
+    # Fig. 8: hip abduction outwards (left legs +, right legs -) of the legs outside the turn minus inside.
+    hips = tr.extra["joint_pos"][:, 0::3] * np.array([1.0, -1.0, 1.0, -1.0])  # FL, FR, RL, RR outward
+    left_turn, right_turn = tr.vel[:, 2] > 0.3, tr.vel[:, 2] < -0.3
+    outer_minus_inner = np.concatenate(
+        [
+            hips[left_turn][:, [1, 3]].mean(axis=1) - hips[left_turn][:, [0, 2]].mean(axis=1),
+            hips[right_turn][:, [0, 2]].mean(axis=1) - hips[right_turn][:, [1, 3]].mean(axis=1),
+        ]
+    )
+    abduction = math.degrees(outer_minus_inner.mean()) if len(outer_minus_inner) else math.nan
     done = np.nonzero(tr.pos[:, 0] >= poles[-1])[0]
     t_end = tr.t[done[0]] if len(done) else math.nan
     mean_speed = poles[-1] / t_end if len(done) else math.nan
@@ -477,14 +545,18 @@ def slalom(out: Path, quick: bool) -> Result:
                 "-",
                 f"{mean_speed:.2f} m/s",
                 "first pole line to the last, along x",
-            ),  # fmt: skip
+            ),
+            Row(
+                "Fig. 8 abduction of the legs outside the turn",
+                "they open (abduct outwards)",
+                f"{abduction:+.1f} deg more than the inside legs",
+                "hip angles, outward positive, mean over the steps turning faster than 0.3 rad/s",
+            ),
         ],
         [(name, "Fig. 1 / Fig. 8: trunk path through the poles (green: passed), and the 12 joint angles")],
         [
             "The rule turns the robot (wz) rather than commanding sideways speed: the shipped caster policy's "
             "sideways tracking is weak (README).",
-            "Fig. 8's observation (the abduction joints of the legs on the outside of a turn open) can be read "
-            "off the lower panel; it is not turned into a number yet.",
         ],
     )
 
