@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import numpy as np
+import pytest
+
 from legged_casters.tools import reproduce
 
 
@@ -15,14 +18,42 @@ def test_quick_reproduction_writes_every_experiment(tmp_path, capsys):
         "Fig. 10",
         "Table II",
         "Fig. 1 / Fig. 8 slalom",
-        "Table II / Fig. 11",
+        "Table II course",
     ):
         assert f"| {experiment}" in page, experiment
     rows = [line for line in page.splitlines() if line.startswith("| Fig. 6 error angles")]
     seconds = float(rows[0].split("|")[3].split()[0])
     assert 0.0 < seconds < 5.0  # the posture recovers after the reversal (measured, not typed)
-    for name in ("fig3_force.png", "fig6_posture.png", "fig9_top_speed.png", "fig10_modes.png", "fig8_slalom.png"):
+    for name in (
+        "fig3_force.png",
+        "fig6_posture.png",
+        "fig9_top_speed.png",
+        "fig10_modes.png",
+        "fig8_slalom.png",
+        "fig11_course.png",
+    ):
         assert (tmp_path / "results" / name).stat().st_size > 5000
         assert f"(results/{name})" in page
     assert reproduce.main(["--only", "fig99", "--out", str(tmp_path)]) == 2
     assert "unknown" in capsys.readouterr().err
+
+
+def test_course_terrain_follows_its_profile():
+    from legged_casters import registry
+    from legged_casters.robot import terrain
+
+    start, segments, end = reproduce.course_segments(quick=True)
+    env = registry.make_env(
+        "go2_wheel_flat", {"terrain.segments": [list(s) for s in segments], "terrain.start_x": start}, num_envs=1
+    )
+    top = terrain.profile(segments, start)[1]
+    assert top[1] == top[3] > 0.2  # the flat top is raised by the climb
+    import mujoco
+
+    data = mujoco.MjData(env.model)
+    mujoco.mj_forward(env.model, data)
+    for x in (start + 1.0, (top[0] + top[2]) / 2, end - 0.5):  # a ray straight down meets the course surface
+        geom = np.zeros(1, dtype=np.int32)
+        dist = mujoco.mj_ray(env.model, data, np.array([x, 0.0, 5.0]), np.array([0.0, 0.0, -1.0]), None, 1, -1, geom)
+        assert 5.0 - dist == pytest.approx(terrain.height_at(segments, x, start), abs=1e-6)
+    env.close()

@@ -22,7 +22,7 @@ from rsl_rl.env import VecEnv
 from tensordict import TensorDict
 
 from legged_casters.envs.config import LeggedEnvCfg
-from legged_casters.robot import build, go2
+from legged_casters.robot import build, go2, terrain
 from legged_casters.sim.base import make_backend, physics_model
 from legged_casters.utils.math import quat_from_yaw, quat_rotate_inverse
 
@@ -64,7 +64,10 @@ class LeggedEnv(VecEnv):
             device = cfg.sim.device
         self.device = torch.device(device)
         num_envs = cfg.num_envs or (GPU_DEFAULT_NUM_ENVS if self.backend_kind == "warp" else CPU_DEFAULT_NUM_ENVS)
-        self.model = physics_model(build.MODEL_FILES[cfg.robot])
+        spec = mujoco.MjSpec.from_file(str(build.MODEL_FILES[cfg.robot]))
+        if cfg.terrain.segments:
+            terrain.add_course(spec, cfg.terrain.segments, cfg.terrain.start_x, cfg.terrain.width)
+        self.model = physics_model(spec)
         if cfg.sim.timestep is not None:
             set_timestep(self.model, cfg.sim.timestep)
         self.sim = make_backend(self.backend_kind, self.model, num_envs, cfg.sim.decimation, self.device)

@@ -124,6 +124,16 @@ class TerminationCfg:
 
 
 @dataclass
+class TerrainCfg:
+    segments: list[tuple[float, float]] = field(default_factory=list)
+    """Planar course along +x (legged_casters/robot/terrain.py): (length m, slope deg) per
+    segment, each starting where the previous ended; empty: the flat floor only."""
+    start_x: float = 2.0
+    """Where the course leaves the floor (robots start at the origin)."""
+    width: float = field(default=4.0, metadata={"min": 0.1})
+
+
+@dataclass
 class LeggedEnvCfg:
     robot: Literal["caster", "point", "wheel"] = "point"
     num_envs: int | None = field(default=None, metadata={"min": 1})
@@ -139,3 +149,4 @@ class LeggedEnvCfg:
     domain_rand: DomainRandCfg = field(default_factory=DomainRandCfg)
     rewards: RewardsCfg = field(default_factory=RewardsCfg)
     termination: TerminationCfg = field(default_factory=TerminationCfg)
+    terrain: TerrainCfg = field(default_factory=TerrainCfg)
