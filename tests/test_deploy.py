@@ -875,3 +875,43 @@ def test_shipped_caster_export_still_loads_and_runs_in_the_bridge(tmp_path):
     run = [P.JointCommand.decode(p) for p in sent]
     run = [c for c in run if c.mode == P.CommandMode.POLICY]
     assert run and len(run[-1].q) == 12 and run[-1].dq == [0.0] * 12
+
+
+@pytest.mark.parametrize(
+    ("module", "args", "message"),
+    [
+        ("teleop", ["--listen", "127.0.0.1:7447"], "e.g. tcp/127.0.0.1:7447"),
+        ("bridge", ["--connect", "localhost:7447"], "e.g. tcp/localhost:7447"),
+        ("sim_robot", ["--mode", "client", "--connect", "tcp/127.0.0.1:{closed}"], "nothing answered there"),
+        ("teleop", ["--zenoh-config", "/nonexistent.json5"], "--zenoh-config"),
+    ],
+)
+def test_bad_endpoints_give_one_line_with_the_fix(module, args, message):
+    closed = free_port()
+    args = [a.format(closed=closed) for a in args]
+    out = subprocess.run(
+        [sys.executable, "-m", f"legged_casters.deploy.{module}", *args, "--duration", "0.1"],
+        cwd=REPO,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert out.returncode == 2, out.stderr
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"{module}: error: ") and message in lines[0], out.stderr
+    assert "Traceback" not in out.stderr
+
+
+def test_a_port_in_use_is_named_not_a_zenoh_traceback():
+    port = free_port()
+    hub = peer(listen=port)
+    try:
+        out = subprocess.run(
+            [sys.executable, "-m", "legged_casters.deploy.sim_robot", "--listen", f"tcp/127.0.0.1:{port}",
+             "--duration", "0.1"],
+            cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)}, capture_output=True, text=True, timeout=60,
+        )  # fmt: skip
+    finally:
+        hub.close()
+    assert out.returncode == 2 and "the port is already in use" in out.stderr and "Traceback" not in out.stderr

@@ -462,6 +462,10 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+NO_STATE_HINT_S = 5.0
+"""Seconds without any robot state after which the bridge says what to check."""
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.policy is None:
@@ -482,7 +486,11 @@ def main(argv: list[str] | None = None) -> int:
         stamp_tolerance=args.stamp_tolerance_ms / 1e3,
         clock=args.clock,
     )
-    session = transport.open_session(args)
+    try:
+        session = transport.open_session(args)
+    except transport.SessionError as err:
+        print(f"bridge: error: {err}", file=sys.stderr)
+        return 2
     zb = ZenohBridge(session, args.namespace, meta, cfg).start()
     print(
         f"bridge: {meta.task} ({meta.robot}), {1 / meta.control_dt:.0f} Hz, "
@@ -490,9 +498,21 @@ def main(argv: list[str] | None = None) -> int:
         flush=True,
     )
     try:
-        t_end = time.monotonic() + args.duration if args.duration > 0 else float("inf")
+        t0 = time.monotonic()
+        t_end = t0 + args.duration if args.duration > 0 else float("inf")
+        warned = False
         while time.monotonic() < t_end:
             time.sleep(min(0.2, max(0.0, t_end - time.monotonic())))
+            if not warned and zb.bridge.received_state == 0 and time.monotonic() - t0 > NO_STATE_HINT_S:
+                warned = True
+                scouting = "multicast scouting" if args.multicast_scouting else "no endpoint given"
+                where = ", ".join(args.connect + args.listen) or scouting
+                print(
+                    f"bridge: no robot state on {zb.keys['state']} after {NO_STATE_HINT_S:.0f} s: is the robot (or "
+                    f"sim_robot) running with --namespace {args.namespace}, and does one side --listen where the "
+                    f"other --connect's ({where})?",
+                    flush=True,
+                )
     except KeyboardInterrupt:
         pass
     finally:

@@ -238,7 +238,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--duration", type=float, default=0.0, help="seconds (0: until Ctrl-C)")
     transport.add_zenoh_args(p)
     args = p.parse_args(argv)
-    session = transport.open_session(args)
+    try:
+        session = transport.open_session(args)
+    except transport.SessionError as err:
+        print(f"sim_robot: error: {err}", file=sys.stderr)
+        return 2
     zr = ZenohSimRobot(
         session,
         args.namespace,

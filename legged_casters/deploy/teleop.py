@@ -34,7 +34,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rate", type=float, default=10.0)
     transport.add_zenoh_args(p)
     args = p.parse_args(argv)
-    session = transport.open_session(args)
+    try:
+        session = transport.open_session(args)
+    except transport.SessionError as err:
+        print(f"teleop: error: {err}", file=sys.stderr)
+        return 2
     pub = session.declare_publisher(P.keys(args.namespace)["operator"])
     sender = P.Sender()
     prop = P.PropulsionMode[args.propulsion.upper()]

@@ -12,11 +12,30 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 from pathlib import Path
 
 import zenoh
 
 MODES = ("peer", "client")
+ENDPOINT_RE = re.compile(r"^[a-z][a-z0-9-]*/\S+$")
+"""<protocol>/<address>, e.g. tcp/127.0.0.1:7447 (zenoh's endpoint form, without metadata)."""
+
+
+class SessionError(RuntimeError):
+    """Zenoh could not start as asked: the message says in one line what to change."""
+
+
+def check_endpoints(flag: str, endpoints: list[str]) -> None:
+    for ep in endpoints:
+        if not ENDPOINT_RE.match(ep.split("?")[0].split("#")[0]):
+            hint = f"tcp/{ep}" if re.match(r"^[\w.\-\[\]:]+:\d+$", ep) else "tcp/HOST:PORT"
+            raise SessionError(f"{flag} {ep!r} is not a zenoh endpoint: write it as <protocol>/<address>, e.g. {hint}")
+
+
+def _first_line(err: Exception) -> str:
+    text = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+    return re.sub(r"\s+at /\S+", "", text)  # zenoh appends source locations
 
 
 def add_zenoh_args(parser: argparse.ArgumentParser) -> None:
@@ -85,8 +104,32 @@ def set_realtime(priority: int) -> bool:
 
 
 def open_session(args: argparse.Namespace) -> zenoh.Session:
+    """The session of a deploy tool; a mistyped endpoint, a port in use or a peer that
+    does not answer (client mode) raise SessionError with the fix in one line."""
     set_realtime(getattr(args, "rt_priority", 0))
-    return zenoh.open(make_config(args.mode, args.listen, args.connect, args.multicast_scouting, args.zenoh_config))
+    check_endpoints("--listen", args.listen)
+    check_endpoints("--connect", args.connect)
+    try:
+        config = make_config(args.mode, args.listen, args.connect, args.multicast_scouting, args.zenoh_config)
+    except FileNotFoundError as err:
+        raise SessionError(f"--zenoh-config: {err}") from None
+    except zenoh.ZError as err:
+        raise SessionError(f"zenoh rejected the configuration: {_first_line(err)}") from None
+    try:
+        return zenoh.open(config)
+    except zenoh.ZError as err:
+        text = str(err)
+        if "Address already in use" in text:
+            raise SessionError(
+                f"--listen {', '.join(args.listen)}: the port is already in use (another bridge or sim_robot still "
+                "running?); stop it or listen on another port"
+            ) from None
+        if "Unable to connect" in text:
+            raise SessionError(
+                f"--connect {', '.join(args.connect)}: nothing answered there; start the other side first "
+                "(it must --listen on that address) or check the address"
+            ) from None
+        raise SessionError(f"zenoh could not start: {_first_line(err)}") from None
 
 
 def fast_publisher(session: zenoh.Session, key: str) -> zenoh.Publisher:
