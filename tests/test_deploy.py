@@ -915,3 +915,26 @@ def test_a_port_in_use_is_named_not_a_zenoh_traceback():
     finally:
         hub.close()
     assert out.returncode == 2 and "the port is already in use" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_live_status_lines(tmp_path, capsys):
+    """The bridge prints each state change with its fault and a one-line summary; teleop
+    says when no bridge is known to have received its messages."""
+    from legged_casters.deploy import bridge as B
+
+    fake = type("FakeBridge", (), {})()
+    fake.transitions = [(0.0, P.BridgeState.STANDUP, P.Fault.NONE), (1.0, P.BridgeState.RUNNING, P.Fault.NONE)]
+    assert B._print_transitions(fake, 0) == 2
+    fake.transitions.append((2.0, P.BridgeState.DAMPING, P.Fault.STALE_STATE))
+    assert B._print_transitions(fake, 2) == 3
+    out = capsys.readouterr().out.splitlines()
+    assert out == ["bridge: START -> STANDUP", "bridge: STANDUP -> RUNNING", "bridge: RUNNING -> DAMPING (STALE_STATE)"]
+    line = B.status_line(P.BridgeStatus(state=P.BridgeState.RUNNING, rate_hz=50.0, rejected=[2, 0, 0, 0, 1]))
+    assert line.startswith("RUNNING, 50.0 Hz") and "{'malformed': 2, 'out_of_order': 1}" in line
+    port = free_port()
+    run = subprocess.run(
+        [sys.executable, "-m", "legged_casters.deploy.teleop", "--connect", f"tcp/127.0.0.1:{port}", "--listen",
+         f"tcp/127.0.0.1:{free_port()}", "--duration", "0.1"],
+        cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)}, capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert run.returncode == 0 and "heard no bridge status on go2/status" in run.stdout

@@ -458,8 +458,36 @@ def build_parser() -> argparse.ArgumentParser:
         help="robot: step on the state timestamps (lowest latency); local: on this process's clock, newest state",
     )
     p.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0: run until Ctrl-C)")
+    p.add_argument(
+        "--summary-every", type=float, default=10.0, help="seconds between one-line health summaries (0: none)"
+    )
     transport.add_zenoh_args(p)
     return p
+
+
+def status_line(st: P.BridgeStatus) -> str:
+    """One line of the bridge's health: state, rate, timing, rejections."""
+    rejected = {k: v for k, v in st.rejected_by_reason().items() if v}
+    return (
+        f"{P.BridgeState(st.state).name}"
+        + (f" ({P.Fault(st.fault).name})" if st.fault else "")
+        + f", {st.rate_hz:.1f} Hz, period jitter p99 {st.jitter_p99_ms:.2f} ms (max {st.jitter_max_ms:.2f}), "
+        f"inference {st.inference_mean_ms:.2f} ms, state age {st.state_age_ms:.1f} ms, "
+        f"states {st.received_state}, operator {st.received_operator}, commands {st.commands}, "
+        f"rejected {rejected or 'none'}"
+    )
+
+
+def _print_transitions(bridge: Bridge, seen: int) -> int:
+    """Print the state changes since `seen` (WAITING -> STANDUP -> RUNNING, faults with
+    their reason, stop / reset); returns the new count."""
+    changes = list(bridge.transitions)
+    for k in range(seen, len(changes)):
+        _, state, fault = changes[k]
+        before = changes[k - 1][1].name if k else "START"
+        reason = f" ({fault.name})" if fault != P.Fault.NONE else ""
+        print(f"bridge: {before} -> {state.name}{reason}", flush=True)
+    return len(changes)
 
 
 NO_STATE_HINT_S = 5.0
@@ -501,8 +529,13 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.monotonic()
         t_end = t0 + args.duration if args.duration > 0 else float("inf")
         warned = False
+        seen, next_summary = 0, t0 + args.summary_every
         while time.monotonic() < t_end:
             time.sleep(min(0.2, max(0.0, t_end - time.monotonic())))
+            seen = _print_transitions(zb.bridge, seen)
+            if args.summary_every > 0 and time.monotonic() >= next_summary:
+                next_summary += args.summary_every
+                print(f"bridge: {status_line(zb.bridge.status())}", flush=True)
             if not warned and zb.bridge.received_state == 0 and time.monotonic() - t0 > NO_STATE_HINT_S:
                 warned = True
                 scouting = "multicast scouting" if args.multicast_scouting else "no endpoint given"

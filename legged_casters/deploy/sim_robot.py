@@ -236,6 +236,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--damping-kd", type=float, default=1.0)
     p.add_argument("--startup", choices=("hold", "damping"), default="hold")
     p.add_argument("--duration", type=float, default=0.0, help="seconds (0: until Ctrl-C)")
+    p.add_argument("--summary-every", type=float, default=10.0, help="seconds between status lines (0: none)")
     transport.add_zenoh_args(p)
     args = p.parse_args(argv)
     try:
@@ -255,9 +256,25 @@ def main(argv: list[str] | None = None) -> int:
     r = zr.robot
     print(f"sim_robot: {args.robot}, physics {1 / r.dt:.0f} Hz, state {1 / (r.dt * r.decimation):.0f} Hz", flush=True)
     try:
-        t_end = time.monotonic() + args.duration if args.duration > 0 else float("inf")
+        t0 = time.monotonic()
+        t_end = t0 + args.duration if args.duration > 0 else float("inf")
+        seen, next_summary, last_cmds = 0, t0 + args.summary_every, 0
         while time.monotonic() < t_end:
             time.sleep(min(0.2, max(0.0, t_end - time.monotonic())))
+            changes = list(r.mode_changes)
+            for k in range(max(seen, 1), len(changes)):
+                why = " (no command for the watchdog time)" if changes[k][1] == P.CommandMode.DAMPING else ""
+                print(f"sim_robot: {changes[k - 1][1].name} -> {changes[k][1].name}{why}", flush=True)
+            seen = len(changes)
+            if args.summary_every > 0 and time.monotonic() >= next_summary:
+                rate = (r.commands_received - last_cmds) / args.summary_every
+                last_cmds, next_summary = r.commands_received, next_summary + args.summary_every
+                rejected = {k: v for k, v in r.rejected.items() if v}
+                print(
+                    f"sim_robot: {r.mode.name}, commands {rate:.1f}/s, sim time {r.steps * r.dt:.1f} s, "
+                    f"overruns {r.overruns}, trunk z {r.data.qpos[2]:.2f} m, rejected {rejected or 'none'}",
+                    flush=True,
+                )
     except KeyboardInterrupt:
         pass
     finally:

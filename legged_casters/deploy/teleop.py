@@ -14,6 +14,7 @@ sequence numbers) so that one lost sample does not matter.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 import time
 
@@ -39,12 +40,22 @@ def main(argv: list[str] | None = None) -> int:
     except transport.SessionError as err:
         print(f"teleop: error: {err}", file=sys.stderr)
         return 2
-    pub = session.declare_publisher(P.keys(args.namespace)["operator"])
+    keys = P.keys(args.namespace)
+    pub = session.declare_publisher(keys["operator"])
     sender = P.Sender()
+    statuses: list[P.BridgeStatus] = []
+
+    def on_status(sample) -> None:
+        with contextlib.suppress(P.ProtocolError):
+            statuses.append(P.BridgeStatus.decode(sample.payload.to_bytes()))
+
+    status_sub = session.declare_subscriber(keys["status"], on_status)
+    sent = [0]
     prop = P.PropulsionMode[args.propulsion.upper()]
 
     def send(vx: float, vy: float, wz: float, flags: int = 0) -> None:
         pub.put(P.OperatorCommand(vx, vy, wz, prop, flags, sender.next_header()).encode())
+        sent[0] += 1
 
     try:
         time.sleep(0.5)  # let the session connect before the first sample
@@ -61,8 +72,25 @@ def main(argv: list[str] | None = None) -> int:
                 k += 1
                 time.sleep(max(0.0, t0 + k / args.rate - time.monotonic()))
             send(0.0, 0.0, 0.0)
-        time.sleep(0.1)
+        time.sleep(0.3)  # a bridge publishes its status every 0.1 s
+        first = next((st.received_operator for st in statuses), None)
+        if statuses:
+            st = statuses[-1]
+            got = st.received_operator - (first or 0)
+            print(
+                f"teleop: sent {sent[0]} messages; the bridge on {keys['status']} accepted {got} of them while "
+                f"listened to (total {st.received_operator}), it is {P.BridgeState(st.state).name}"
+                + (f" ({P.Fault(st.fault).name})" if st.fault else ""),
+                flush=True,
+            )
+        else:
+            print(
+                f"teleop: sent {sent[0]} messages but heard no bridge status on {keys['status']}: nobody is known to "
+                "have received them (is the bridge running, with this --namespace and a matching --connect/--listen?)",
+                flush=True,
+            )
     finally:
+        status_sub.undeclare()
         pub.undeclare()
         session.close()
     return 0
