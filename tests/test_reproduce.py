@@ -57,3 +57,24 @@ def test_course_terrain_follows_its_profile():
         dist = mujoco.mj_ray(env.model, data, np.array([x, 0.0, 5.0]), np.array([0.0, 0.0, -1.0]), None, 1, -1, geom)
         assert 5.0 - dist == pytest.approx(terrain.height_at(segments, x, start), abs=1e-6)
     env.close()
+
+
+def test_robots_spawn_on_the_course_at_the_right_height_and_evaluation_is_flat():
+    import torch
+
+    from legged_casters import registry
+    from legged_casters.robot import terrain
+    from legged_casters.tools import evaluate
+
+    segments = [[6.0, 5.0], [2.0, 0.0], [6.0, -5.0]]
+    cfg = {"terrain.segments": segments, "terrain.start_x": 1.0, "terrain.width": 10.0, "terrain.spawn_on_course": True}
+    env = registry.make_env("go2_wheel_flat", cfg, num_envs=32, seed=3)
+    ground = terrain.height_torch(segments, env.base_pos[:, 0], 1.0)
+    assert (ground > 0.1).any() and (env.base_pos[:, 0] > 0.5).all()  # spread over the course, hill included
+    for _ in range(25):
+        env.step(torch.zeros(32, env.num_actions))
+    assert torch.allclose(env.base_height, torch.full_like(env.base_height, 0.38), atol=0.05)  # standing on it
+    env.close()
+    spec = registry.get_task("go2_wheel_flat")
+    flat = evaluate.eval_env_cfg(reproduce.common.with_overrides(spec.env_cfg, cfg, "t"), evaluate.QUICK[:1])
+    assert flat.terrain.segments == []

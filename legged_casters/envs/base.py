@@ -221,6 +221,10 @@ class LeggedEnv(VecEnv):
         # float32 copies: the CPU backend simulates in float64, the env computes in float32.
         qpos, qvel = self.sim.qpos.float(), self.sim.qvel.float()
         self.base_pos = qpos[:, 0:3]
+        t = self.cfg.terrain
+        ground = terrain.height_torch(t.segments, self.base_pos[:, 0], t.start_x)
+        self.base_height = self.base_pos[:, 2] - ground
+        """Trunk height above the ground under it (the floor, or the terrain course)."""
         self.base_quat = qpos[:, 3:7]
         self.base_lin_vel_world = qvel[:, 0:3]
         self.base_lin_vel = quat_rotate_inverse(self.base_quat, self.base_lin_vel_world)
@@ -373,6 +377,10 @@ class LeggedEnv(VecEnv):
         qpos[:, self.joint_qadr] += noise * self.position_joints
         if init.random_yaw:
             qpos[:, 3:7] = quat_from_yaw(_uniform(-math.pi, math.pi, (n,), self.device))
+        t = self.cfg.terrain
+        if t.segments and t.spawn_on_course:
+            qpos[:, 0] = _uniform(0.0, terrain.course_end(t.segments, t.start_x) + 2.0, (n,), self.device)
+            qpos[:, 1] = _uniform(-(t.width / 2 - 1.0), t.width / 2 - 1.0, (n,), self.device)
         self._lift_to_floor(qpos)
         qvel = torch.zeros(n, self.model.nv, device=self.device)
         qvel[:, 0:6] = _uniform(-init.base_vel_noise, init.base_vel_noise, (n, 6), self.device)
@@ -400,6 +408,10 @@ class LeggedEnv(VecEnv):
             data.qpos[:] = q[i]
             mujoco.mj_kinematics(self.model, data)
             q[i, 2] -= build.ground_clearance(self.model, data, self.cfg.robot)
+        t = self.cfg.terrain
+        if t.segments:  # on the course: the ground under the trunk, plus what a slope adds under the feet
+            ground = terrain.height_torch(t.segments, torch.from_numpy(q[:, 0]), t.start_x).numpy()
+            q[:, 2] += ground + np.where(ground > 0, 0.03, 0.0)
         qpos[:, 2] = torch.from_numpy(q[:, 2]).to(qpos)
 
     def _reset_task_state(self, env_ids: torch.Tensor) -> None:
@@ -546,7 +558,7 @@ class LeggedEnv(VecEnv):
         return self.actions
 
     def _obs_base_height(self) -> torch.Tensor:
-        return self.base_pos[:, 2:3]
+        return self.base_height.unsqueeze(1)
 
     # --- shared reward terms ------------------------------------------------------------
     def _reward_tracking_lin_vel(self) -> torch.Tensor:
@@ -567,7 +579,7 @@ class LeggedEnv(VecEnv):
         return torch.sum(self.projected_gravity[:, :2] ** 2, dim=1)
 
     def _reward_base_height(self) -> torch.Tensor:
-        return (self.base_pos[:, 2] - self.cfg.rewards.base_height_target) ** 2
+        return (self.base_height - self.cfg.rewards.base_height_target) ** 2
 
     def _reward_torques(self) -> torch.Tensor:
         return torch.sum(self.torques**2, dim=1)

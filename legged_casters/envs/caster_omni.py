@@ -343,7 +343,7 @@ class CasterOmniEnv(LeggedEnv):
         return torch.sum(self.mode_mask * torch.exp(-self.swivel_vel.abs()), dim=1) * self._gate()
 
     def _reward_body_height(self) -> torch.Tensor:
-        err = (self.base_pos[:, 2] - self.cfg.rewards.base_height_target) / self.cfg.body_height_length_scale
+        err = (self.base_height - self.cfg.rewards.base_height_target) / self.cfg.body_height_length_scale
         return torch.exp(-(err**2))
 
     def _reward_joint_deviation(self) -> torch.Tensor:

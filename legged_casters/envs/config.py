@@ -131,6 +131,9 @@ class TerrainCfg:
     start_x: float = 2.0
     """Where the course leaves the floor (robots start at the origin)."""
     width: float = field(default=4.0, metadata={"min": 0.1})
+    spawn_on_course: bool = False
+    """Reset robots at random places on the course (x in [0, its end + 2 m], |y| up to
+    width / 2 - 1 m) instead of the origin: training on its slopes."""
 
 
 @dataclass

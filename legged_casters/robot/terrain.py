@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 
 import mujoco
+import torch
 
 from legged_casters.robot.caster import ContactParams, set_contact
 
@@ -38,6 +39,24 @@ def height_at(segments, x: float, start_x: float = 0.0) -> float:
         if x0 <= x <= x1:
             return z0 + (z1 - z0) * (x - x0) / (x1 - x0)
     return 0.0
+
+
+def course_end(segments, start_x: float = 0.0) -> float:
+    """x where the course ends (start_x for no segments)."""
+    return profile(segments, start_x)[-1][2] if segments else start_x
+
+
+def height_torch(segments, x: torch.Tensor, start_x: float = 0.0) -> torch.Tensor:
+    """Ground height (m) under each x, vectorised (piecewise linear, 0 off the course)."""
+    if not segments:
+        return torch.zeros_like(x)
+    edges = profile(segments, start_x)
+    xs = torch.tensor([edges[0][0]] + [e[2] for e in edges], dtype=x.dtype, device=x.device)
+    zs = torch.tensor([edges[0][1]] + [e[3] for e in edges], dtype=x.dtype, device=x.device)
+    i = torch.searchsorted(xs, x.contiguous()).clamp(1, len(xs) - 1)
+    x0, x1, z0, z1 = xs[i - 1], xs[i], zs[i - 1], zs[i]
+    z = z0 + (z1 - z0) * (x - x0) / (x1 - x0)
+    return torch.where((x >= xs[0]) & (x <= xs[-1]), z, torch.zeros_like(x))
 
 
 def add_course(spec: mujoco.MjSpec, segments, start_x: float = 0.0, width: float = 4.0) -> None:

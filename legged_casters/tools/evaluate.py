@@ -114,8 +114,11 @@ EVAL_SETTINGS = {
     "init_state.base_vel_noise": 0.0,
     "init_state.random_yaw": False,
     "commands.curriculum": False,
+    "terrain.segments": [],
 }
-"""What makes an env an evaluation env: no noise, no randomisation, a standing start."""
+"""What makes an env an evaluation env: no noise, no randomisation, a standing start on
+flat ground (a task trained on a terrain course is evaluated on the flat floor; the
+slope experiments add their course explicitly, scripts/reproduce.py)."""
 
 
 def applicable(scenarios, env_class, env_cfg) -> tuple[Scenario, ...]:
