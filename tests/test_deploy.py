@@ -696,6 +696,57 @@ def _spawn(module: str, *args: str) -> subprocess.Popen:
     )
 
 
+class LoopProbe:
+    """A zenoh peer beside a sim_robot + bridge pair: records states and commands (with
+    their arrival times), sim truth and bridge statuses, and plays the operator."""
+
+    def __init__(self, port: int, ns: str):
+        self.sess = peer(connect=port)
+        self.states: list[tuple[float, P.RobotState]] = []
+        self.truths: list[P.SimTruth] = []
+        self.cmds: list[tuple[float, P.JointCommand]] = []
+        self.statuses: list[P.BridgeStatus] = []
+
+        def timed(log, cls):
+            return lambda s: log.append((time.monotonic(), cls.decode(s.payload.to_bytes())))
+
+        self.subs = [
+            self.sess.declare_subscriber(f"{ns}/state", timed(self.states, P.RobotState)),
+            self.sess.declare_subscriber(f"{ns}/cmd", timed(self.cmds, P.JointCommand)),
+            self.sess.declare_subscriber(
+                f"{ns}/sim/truth", lambda s: self.truths.append(P.SimTruth.decode(s.payload.to_bytes()))
+            ),
+            self.sess.declare_subscriber(
+                f"{ns}/status", lambda s: self.statuses.append(P.BridgeStatus.decode(s.payload.to_bytes()))
+            ),
+        ]
+        self.opub = self.sess.declare_publisher(f"{ns}/operator")
+        self.opsend = P.Sender()
+
+    def operate(self, vx: float, seconds: float) -> None:
+        """Send the operator command vx at 20 Hz for `seconds`."""
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self.opub.put(op(self.opsend, vx=vx))
+            time.sleep(0.05)
+
+    def close(self) -> None:
+        for s in self.subs:
+            s.undeclare()
+        self.sess.close()
+
+
+def _stop(*procs: subprocess.Popen | None) -> None:
+    """Ctrl-C each process still running; kill it if it does not end in 10 s."""
+    for p in procs:
+        if p is not None and p.poll() is None:
+            p.send_signal(signal.SIGINT)
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+
+
 def test_full_loop_sim_robot_and_bridge(tmp_path, realtime):
     """sim_robot and bridge as separate processes: stand-up, then the simple gait policy
     (hips swing left/right in antiphase with an amplitude proportional to vx) stands
@@ -706,23 +757,8 @@ def test_full_loop_sim_robot_and_bridge(tmp_path, realtime):
     port = free_port()
     ns = "t_loop"
     robot = _spawn("sim_robot", "--listen", f"tcp/127.0.0.1:{port}", "--namespace", ns, "--watchdog-ms", "100")
-    sess = peer(connect=port)
-    states: list[tuple[float, P.RobotState]] = []
-    truths: list[P.SimTruth] = []
-    cmds: list[tuple[float, P.JointCommand]] = []
-    statuses: list[P.BridgeStatus] = []
-    subs = [
-        sess.declare_subscriber(
-            f"{ns}/state", lambda s: states.append((time.monotonic(), P.RobotState.decode(s.payload.to_bytes())))
-        ),
-        sess.declare_subscriber(f"{ns}/sim/truth", lambda s: truths.append(P.SimTruth.decode(s.payload.to_bytes()))),
-        sess.declare_subscriber(
-            f"{ns}/cmd", lambda s: cmds.append((time.monotonic(), P.JointCommand.decode(s.payload.to_bytes())))
-        ),
-        sess.declare_subscriber(f"{ns}/status", lambda s: statuses.append(P.BridgeStatus.decode(s.payload.to_bytes()))),
-    ]
-    opub = sess.declare_publisher(f"{ns}/operator")
-    opsend = P.Sender()
+    probe = LoopProbe(port, ns)
+    states, truths, cmds, statuses, operate = probe.states, probe.truths, probe.cmds, probe.statuses, probe.operate
     bridge = None
     try:
         assert wait_for(lambda: len(states) > 5, 20.0), "sim robot did not start"
@@ -731,12 +767,6 @@ def test_full_loop_sim_robot_and_bridge(tmp_path, realtime):
             "--standup-time", "1.0", "--max-state-age-ms", "100",
         )  # fmt: skip
         assert wait_for(lambda: any(c.mode == P.CommandMode.POLICY for _, c in cmds), 20.0), "policy never ran"
-
-        def operate(v: float, seconds: float):
-            end = time.monotonic() + seconds
-            while time.monotonic() < end:
-                opub.put(op(opsend, vx=v))
-                time.sleep(0.05)
 
         operate(0.0, 2.0)
         n0, n0t = len(states), len(truths)
@@ -776,16 +806,8 @@ def test_full_loop_sim_robot_and_bridge(tmp_path, realtime):
         assert t_damp - last_cmd <= 0.1 + DT + 0.01, f"robot damped {1e3 * (t_damp - last_cmd):.0f} ms after last cmd"
         assert t_damp - last_cmd >= 0.08  # and not before the watchdog limit
     finally:
-        for s in subs:
-            s.undeclare()
-        sess.close()
-        for p in (bridge, robot):
-            if p is not None and p.poll() is None:
-                p.send_signal(signal.SIGINT)
-                try:
-                    p.wait(10)
-                except subprocess.TimeoutExpired:
-                    p.kill()
+        probe.close()
+        _stop(bridge, robot)
 
 
 WHEEL_POLICY = REPO / "resources" / "policies" / "go2_wheel_flat"
@@ -801,19 +823,8 @@ def test_full_loop_wheel_robot_runs_the_shipped_wheel_policy(tmp_path, realtime)
     robot = _spawn(
         "sim_robot", "--robot", "wheel", "--listen", f"tcp/127.0.0.1:{port}", "--namespace", ns, "--watchdog-ms", "100"
     )
-    sess = peer(connect=port)
-    states: list[tuple[float, P.RobotState]] = []
-    truths: list[P.SimTruth] = []
-    cmds: list[P.JointCommand] = []
-    subs = [
-        sess.declare_subscriber(
-            f"{ns}/state", lambda s: states.append((time.monotonic(), P.RobotState.decode(s.payload.to_bytes())))
-        ),
-        sess.declare_subscriber(f"{ns}/sim/truth", lambda s: truths.append(P.SimTruth.decode(s.payload.to_bytes()))),
-        sess.declare_subscriber(f"{ns}/cmd", lambda s: cmds.append(P.JointCommand.decode(s.payload.to_bytes()))),
-    ]
-    opub = sess.declare_publisher(f"{ns}/operator")
-    opsend = P.Sender()
+    probe = LoopProbe(port, ns)
+    states, truths, cmds, operate = probe.states, probe.truths, probe.cmds, probe.operate
     bridge = None
     try:
         assert wait_for(lambda: len(states) > 5, 20.0), "sim robot did not start"
@@ -822,15 +833,9 @@ def test_full_loop_wheel_robot_runs_the_shipped_wheel_policy(tmp_path, realtime)
             "bridge", "--policy", str(WHEEL_POLICY), "--connect", f"tcp/127.0.0.1:{port}", "--namespace", ns,
             "--standup-time", "0.5", "--max-state-age-ms", "100",
         )  # fmt: skip
-        assert wait_for(lambda: any(c.mode == P.CommandMode.POLICY for c in cmds), 20.0), "policy never ran"
-        standup = [c for c in cmds if c.mode == P.CommandMode.STANDUP]
+        assert wait_for(lambda: any(c.mode == P.CommandMode.POLICY for _, c in cmds), 20.0), "policy never ran"
+        standup = [c for _, c in cmds if c.mode == P.CommandMode.STANDUP]
         assert standup and all(c.dq[12:] == [0.0] * 4 and c.kp[12:] == [0.0] * 4 for c in standup)
-
-        def operate(v: float, seconds: float):
-            end = time.monotonic() + seconds
-            while time.monotonic() < end:
-                opub.put(op(opsend, vx=v))
-                time.sleep(0.05)
 
         operate(0.0, 1.0)
         n0 = len(truths)
@@ -841,7 +846,7 @@ def test_full_loop_wheel_robot_runs_the_shipped_wheel_policy(tmp_path, realtime)
         late = [t.lin_vel[0] for t in moving if t.sim_time > moving[-1].sim_time - 1.5]
         print(f"wheel loop: dx {dx:.2f} m, dy {dy:.2f} m in 4 s, late vx {np.mean(late):.2f} m/s")
         assert 0.35 < np.mean(late) < 0.65 and dx > 1.2 and abs(dy) < 0.3 * dx
-        policy = [c for c in cmds if c.mode == P.CommandMode.POLICY]
+        policy = [c for _, c in cmds if c.mode == P.CommandMode.POLICY]
         wheel_rates = np.array([c.dq[12:] for c in policy[-25:]])
         assert np.all(wheel_rates > 2.0), "wheels are not driven forward"  # 0.5 m/s is ~5.6 rad/s
         assert min(t.pos[2] for t in truths) > 0.3, "trunk dropped"
@@ -851,16 +856,8 @@ def test_full_loop_wheel_robot_runs_the_shipped_wheel_policy(tmp_path, realtime)
         bridge.wait(10)
         assert wait_for(lambda: states[-1][1].robot_mode == P.CommandMode.DAMPING, 2.0)
     finally:
-        for s in subs:
-            s.undeclare()
-        sess.close()
-        for p in (bridge, robot):
-            if p is not None and p.poll() is None:
-                p.send_signal(signal.SIGINT)
-                try:
-                    p.wait(10)
-                except subprocess.TimeoutExpired:
-                    p.kill()
+        probe.close()
+        _stop(bridge, robot)
 
 
 def test_shipped_caster_export_still_loads_and_runs_in_the_bridge(tmp_path):

@@ -55,7 +55,7 @@ def test_course_terrain_follows_its_profile():
     for x in (start + 1.0, (top[0] + top[2]) / 2, end - 0.5):  # a ray straight down meets the course surface
         geom = np.zeros(1, dtype=np.int32)
         dist = mujoco.mj_ray(env.model, data, np.array([x, 0.0, 5.0]), np.array([0.0, 0.0, -1.0]), None, 1, -1, geom)
-        assert 5.0 - dist == pytest.approx(terrain.height_at(segments, x, start), abs=1e-6)
+        assert 5.0 - dist == pytest.approx(terrain.Course(segments, start).height(x), abs=1e-6)
     env.close()
 
 
@@ -69,7 +69,7 @@ def test_robots_spawn_on_the_course_at_the_right_height_and_evaluation_is_flat()
     segments = [[6.0, 5.0], [2.0, 0.0], [6.0, -5.0]]
     cfg = {"terrain.segments": segments, "terrain.start_x": 1.0, "terrain.width": 10.0, "terrain.spawn_on_course": True}
     env = registry.make_env("go2_wheel_flat", cfg, num_envs=32, seed=3)
-    ground = terrain.height_torch(segments, env.base_pos[:, 0], 1.0)
+    ground = terrain.Course(segments, 1.0).height_torch(env.base_pos[:, 0])
     assert (ground > 0.1).any() and (env.base_pos[:, 0] > 0.5).all()  # spread over the course, hill included
     for _ in range(25):
         env.step(torch.zeros(32, env.num_actions))

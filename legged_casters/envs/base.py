@@ -65,8 +65,11 @@ class LeggedEnv(VecEnv):
         self.device = torch.device(device)
         num_envs = cfg.num_envs or (GPU_DEFAULT_NUM_ENVS if self.backend_kind == "warp" else CPU_DEFAULT_NUM_ENVS)
         spec = mujoco.MjSpec.from_file(str(build.MODEL_FILES[cfg.robot]))
+        self.course = None
+        """The terrain course under the robots (terrain.Course), None on flat ground."""
         if cfg.terrain.segments:
             terrain.add_course(spec, cfg.terrain.segments, cfg.terrain.start_x, cfg.terrain.width)
+            self.course = terrain.Course(cfg.terrain.segments, cfg.terrain.start_x)
         self.model = physics_model(spec)
         if cfg.sim.timestep is not None:
             set_timestep(self.model, cfg.sim.timestep)
@@ -182,6 +185,15 @@ class LeggedEnv(VecEnv):
         or None: the actor is a plain MLP."""
         return None
 
+    def policy_obs_slices(self) -> dict[str, list[float]]:
+        """Policy observation term -> [start index, scale] in the actor's input (what a
+        prior inside the actor reads its terms from)."""
+        slices, start = {}, 0
+        for name, dim, scale in self.obs_layout["policy"]:
+            slices[name] = [start, scale]
+            start += dim
+        return slices
+
     def observation_dims(self) -> dict[str, int]:
         return {group: sum(dim for _, dim, _ in layout) for group, layout in self.obs_layout.items()}
 
@@ -221,10 +233,10 @@ class LeggedEnv(VecEnv):
         # float32 copies: the CPU backend simulates in float64, the env computes in float32.
         qpos, qvel = self.sim.qpos.float(), self.sim.qvel.float()
         self.base_pos = qpos[:, 0:3]
-        t = self.cfg.terrain
-        ground = terrain.height_torch(t.segments, self.base_pos[:, 0], t.start_x)
-        self.base_height = self.base_pos[:, 2] - ground
+        self.base_height = self.base_pos[:, 2]
         """Trunk height above the ground under it (the floor, or the terrain course)."""
+        if self.course is not None:
+            self.base_height = self.base_height - self.course.height_torch(self.base_pos[:, 0])
         self.base_quat = qpos[:, 3:7]
         self.base_lin_vel_world = qvel[:, 0:3]
         self.base_lin_vel = quat_rotate_inverse(self.base_quat, self.base_lin_vel_world)
@@ -378,8 +390,8 @@ class LeggedEnv(VecEnv):
         if init.random_yaw:
             qpos[:, 3:7] = quat_from_yaw(_uniform(-math.pi, math.pi, (n,), self.device))
         t = self.cfg.terrain
-        if t.segments and t.spawn_on_course:
-            qpos[:, 0] = _uniform(0.0, terrain.course_end(t.segments, t.start_x) + 2.0, (n,), self.device)
+        if self.course is not None and t.spawn_on_course:
+            qpos[:, 0] = _uniform(0.0, self.course.end + 2.0, (n,), self.device)
             qpos[:, 1] = _uniform(-(t.width / 2 - 1.0), t.width / 2 - 1.0, (n,), self.device)
         self._lift_to_floor(qpos)
         qvel = torch.zeros(n, self.model.nv, device=self.device)
@@ -408,9 +420,8 @@ class LeggedEnv(VecEnv):
             data.qpos[:] = q[i]
             mujoco.mj_kinematics(self.model, data)
             q[i, 2] -= build.ground_clearance(self.model, data, self.cfg.robot)
-        t = self.cfg.terrain
-        if t.segments:  # on the course: the ground under the trunk, plus what a slope adds under the feet
-            ground = terrain.height_torch(t.segments, torch.from_numpy(q[:, 0]), t.start_x).numpy()
+        if self.course is not None:  # on the course: the ground under the trunk, plus what a slope adds
+            ground = self.course.height(q[:, 0])
             q[:, 2] += ground + np.where(ground > 0, 0.03, 0.0)
         qpos[:, 2] = torch.from_numpy(q[:, 2]).to(qpos)
 

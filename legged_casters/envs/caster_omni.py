@@ -245,10 +245,7 @@ class CasterOmniEnv(LeggedEnv):
     def actor_prior(self) -> dict | None:
         if not self.cfg.gait.enabled:
             return None
-        slices, start = {}, 0
-        for name, dim, scale in self.obs_layout["policy"]:
-            slices[name] = [start, scale]
-            start += dim
+        slices = self.policy_obs_slices()
         return {
             "kind": "gait",
             "cfg": dict(vars(self.cfg.gait)),

@@ -52,6 +52,15 @@ class CommandsCfg:
     curriculum_threshold: float = field(default=0.8, metadata={"min": 0.0, "max": 1.0})
     """Fraction of the maximum linear-tracking reward an episode must earn on average."""
 
+    def limits(self) -> list[tuple[float, float]]:
+        """(lo, hi) of vx, vy, wz that training can command: the ranges, vx widened to the
+        curriculum's limit where the curriculum is on."""
+        r = self.ranges
+        vx = tuple(r.lin_vel_x)
+        if self.curriculum:
+            vx = (min(vx[0], self.max_lin_vel_x[0]), max(vx[1], self.max_lin_vel_x[1]))
+        return [vx, tuple(r.lin_vel_y), tuple(r.ang_vel_yaw)]
+
 
 @dataclass
 class InitStateCfg:

@@ -87,10 +87,7 @@ class Go2WheelFlatEnv(LeggedEnv):
     def actor_prior(self) -> dict | None:
         if not self.cfg.feedforward:
             return None
-        slices, start = {}, 0
-        for name, dim, scale in self.obs_layout["policy"]:
-            slices[name] = [start, scale]
-            start += dim
+        slices = self.policy_obs_slices()
         return {
             "kind": "drive",
             "cfg": {

@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 
 import mujoco
+import numpy as np
 import torch
 
 from legged_casters.robot.caster import ContactParams, set_contact
@@ -33,30 +34,34 @@ def profile(segments, start_x: float = 0.0) -> list[tuple[float, float, float, f
     return out
 
 
-def height_at(segments, x: float, start_x: float = 0.0) -> float:
-    """Ground height (m) under x; 0 outside the course."""
-    for x0, z0, x1, z1 in profile(segments, start_x) if segments else ():
-        if x0 <= x <= x1:
-            return z0 + (z1 - z0) * (x - x0) / (x1 - x0)
-    return 0.0
+class Course:
+    """A course's ground height, built once: `height(x)` (numpy, floats or arrays) and
+    `height_torch(x)` (a tensor of x, for the env's every step). 0 off the course."""
 
+    def __init__(self, segments, start_x: float = 0.0):
+        edges = profile(segments, start_x) if segments else [(start_x, 0.0, start_x, 0.0)]
+        self.xs = np.array([edges[0][0]] + [e[2] for e in edges])
+        self.zs = np.array([edges[0][1]] + [e[3] for e in edges])
+        self._torch: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
 
-def course_end(segments, start_x: float = 0.0) -> float:
-    """x where the course ends (start_x for no segments)."""
-    return profile(segments, start_x)[-1][2] if segments else start_x
+    @property
+    def end(self) -> float:
+        """x where the course ends."""
+        return float(self.xs[-1])
 
+    def height(self, x):
+        return np.interp(x, self.xs, self.zs, left=0.0, right=0.0)
 
-def height_torch(segments, x: torch.Tensor, start_x: float = 0.0) -> torch.Tensor:
-    """Ground height (m) under each x, vectorised (piecewise linear, 0 off the course)."""
-    if not segments:
-        return torch.zeros_like(x)
-    edges = profile(segments, start_x)
-    xs = torch.tensor([edges[0][0]] + [e[2] for e in edges], dtype=x.dtype, device=x.device)
-    zs = torch.tensor([edges[0][1]] + [e[3] for e in edges], dtype=x.dtype, device=x.device)
-    i = torch.searchsorted(xs, x.contiguous()).clamp(1, len(xs) - 1)
-    x0, x1, z0, z1 = xs[i - 1], xs[i], zs[i - 1], zs[i]
-    z = z0 + (z1 - z0) * (x - x0) / (x1 - x0)
-    return torch.where((x >= xs[0]) & (x <= xs[-1]), z, torch.zeros_like(x))
+    def height_torch(self, x: torch.Tensor) -> torch.Tensor:
+        key = (x.dtype, x.device)
+        if key not in self._torch:
+            self._torch[key] = (torch.as_tensor(self.xs, dtype=x.dtype, device=x.device),
+                                torch.as_tensor(self.zs, dtype=x.dtype, device=x.device))  # fmt: skip
+        xs, zs = self._torch[key]
+        i = torch.searchsorted(xs, x.contiguous()).clamp(1, len(xs) - 1)
+        x0, x1, z0, z1 = xs[i - 1], xs[i], zs[i - 1], zs[i]
+        z = z0 + (z1 - z0) * (x - x0) / (x1 - x0).clamp(min=1e-9)
+        return torch.where((x >= xs[0]) & (x <= xs[-1]), z, torch.zeros_like(x))
 
 
 def add_course(spec: mujoco.MjSpec, segments, start_x: float = 0.0, width: float = 4.0) -> None:

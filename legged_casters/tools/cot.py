@@ -30,7 +30,7 @@ ROBOTS = (
 
 
 def measure(policy_dir: Path, speed: float, duration: float, settle: float) -> dict:
-    task, spec, env_cfg, policy, label, dim = evaluate._load_exported(policy_dir, None)
+    task, spec, env_cfg, policy, label, dim = evaluate.load_exported(policy_dir, None)
     scenario = evaluate.Scenario(f"vx {speed:+.1f}", ((0.0, (speed, 0.0, 0.0)),), duration, settle)
     env = spec.env_class(evaluate.eval_env_cfg(env_cfg, (scenario,)))
     try:

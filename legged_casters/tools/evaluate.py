@@ -126,10 +126,7 @@ def applicable(scenarios, env_class, env_cfg) -> tuple[Scenario, ...]:
     ever commanded in training (its command ranges, vx up to the curriculum's limit;
     e.g. no vy for the wheel robot, whose range is [0, 0]), no propulsion-mode scenario
     for a task without modes."""
-    cmd = env_cfg.commands
-    limits = [list(cmd.ranges.lin_vel_x), list(cmd.ranges.lin_vel_y), list(cmd.ranges.ang_vel_yaw)]
-    if cmd.curriculum:
-        limits[0] = [min(limits[0][0], cmd.max_lin_vel_x[0]), max(limits[0][1], cmd.max_lin_vel_x[1])]
+    limits = env_cfg.commands.limits()
     keep = []
     for s in scenarios:
         if s.kind == "mode" and not hasattr(env_class, "set_mode"):
@@ -381,7 +378,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _load_exported(path: Path, task_arg: str | None):
+def load_exported(path: Path, task_arg: str | None):
     """An exported policy.pt (or its folder) -> (task, spec, env cfg, policy, label, obs dim)."""
     file = path / "policy.pt" if path.is_dir() else path
     if not file.is_file() or file.suffix != ".pt":
@@ -412,7 +409,7 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
             raise UsageError(
                 "--policy evaluates an exported policy; --load_run/--checkpoint choose a training run: pick one"
             )
-        task, spec, env_cfg, policy, label, dim = _load_exported(Path(args.policy).expanduser(), args.task)
+        task, spec, env_cfg, policy, label, dim = load_exported(Path(args.policy).expanduser(), args.task)
     else:
         dim = None
         try:
@@ -426,7 +423,7 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
                     "--stochastic needs a training checkpoint; no run was found (train one first)"
                 ) from None
             print(f"[{PROG}] no run found: evaluating the shipped policy {shipped}")
-            task, spec, env_cfg, policy, label, dim = _load_exported(shipped, args.task)
+            task, spec, env_cfg, policy, label, dim = load_exported(shipped, args.task)
             sel = None
         if sel is not None:
             from legged_casters.tools.export import load_actor

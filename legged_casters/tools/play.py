@@ -345,10 +345,7 @@ def play(args: argparse.Namespace, default_log_root: Path | None) -> int:
 def _warn_untrained_commands(profile: Profile, src: PolicySource) -> None:
     """Say so when the profile commands more than the task is trained for (e.g. vy for
     the wheel robot, whose axles cannot move it sideways); play it anyway."""
-    ranges = src.env_cfg.commands.ranges
-    limits = (ranges.lin_vel_x, ranges.lin_vel_y, ranges.ang_vel_yaw)
-    if src.env_cfg.commands.curriculum:
-        limits = (src.env_cfg.commands.max_lin_vel_x, *limits[1:])
+    limits = src.env_cfg.commands.limits()
     worst = [0.0, 0.0, 0.0]
     for k in range(int(profile.duration / 0.1) + 1):
         cmd, _ = profile.at(k * 0.1)

@@ -87,7 +87,7 @@ def run_policy(
     (vx, vy, wz) (a schedule, or a controller reading the env's state), mode_at(t) ->
     propulsion mode name (caster tasks); `overrides` of the env config (e.g. the terrain);
     `until(env)` ends the run early. Records per step."""
-    _, spec, env_cfg, policy, _, _ = evaluate._load_exported(_shipped(task), task)
+    _, spec, env_cfg, policy, _, _ = evaluate.load_exported(_shipped(task), task)
     scenario = evaluate.Scenario("reproduce", ((0.0, (0.0, 0.0, 0.0)),), duration, 0.0)
     cfg = evaluate.eval_env_cfg(env_cfg, (scenario,))
     env = spec.env_class(common.with_overrides(cfg, overrides or {}, "reproduce"))
@@ -479,121 +479,9 @@ def table2(out: Path, quick: bool) -> Result:
 POLE_SPACING = 1.8  # m, the paper's slalom
 
 
-class PoleFollower:
-    """A pure-pursuit rule for a slalom through poles on the x axis: the reference path
-    y = A cos(pi x / spacing) passes the poles (at x = spacing, 2 spacing, ...) on
-    alternating sides; the rule steers (wz, proportional to the heading error) towards
-    the path point `lookahead` metres ahead at a constant forward command (vx)."""
-
-    def __init__(self, amplitude: float, speed: float, lookahead: float = 0.8, gain: float = 1.5, max_wz: float = 1.0):
-        self.amplitude, self.speed, self.lookahead = amplitude, speed, lookahead
-        self.gain, self.max_wz = gain, max_wz
-
-    def path_y(self, x):
-        return -self.amplitude * np.cos(np.pi * np.asarray(x) / POLE_SPACING)
-
-    def __call__(self, t: float, env) -> tuple[float, float, float]:
-        x, y = (float(v) for v in env.base_pos[0, :2])
-        gx = x + self.lookahead
-        heading = math.atan2(float(self.path_y(gx)) - y, gx - x)
-        yaw = float(yaw_from_quat(env.base_quat)[0])
-        err = math.atan2(math.sin(heading - yaw), math.cos(heading - yaw))
-        return (self.speed, 0.0, float(np.clip(self.gain * err, -self.max_wz, self.max_wz)))
-
-
-def slalom(out: Path, quick: bool) -> Result:
-    """Fig. 1 / Fig. 8: weave through poles 1.8 m apart (caster_omni, pole-following rule)."""
-    n_poles, speed, offset, clearance = (4, 0.6, 0.4, 0.2) if quick else (8, 0.6, 0.4, 0.2)
-    poles = POLE_SPACING * np.arange(1, n_poles + 1)
-    follower = PoleFollower(offset, speed)
-    tr = run_policy("caster_omni", (n_poles + 2) * POLE_SPACING / speed + 2.0, follower)
-    passed = []
-    for px in poles:
-        k = np.nonzero(tr.pos[:, 0] >= px)[0]
-        if not len(k) or not tr.upright[k[0]]:
-            passed.append(False)
-            continue
-        side = float(np.sign(follower.path_y(px)))
-        d = np.hypot(tr.pos[:, 0] - px, tr.pos[:, 1]).min()
-        passed.append(bool(side * tr.pos[k[0], 1] > 0 and d > clearance))
-    # Fig. 8: hip abduction outwards (left legs +, right legs -) of the legs outside the turn minus inside.
-    hips = tr.extra["joint_pos"][:, 0::3] * np.array([1.0, -1.0, 1.0, -1.0])  # FL, FR, RL, RR outward
-    left_turn, right_turn = tr.vel[:, 2] > 0.3, tr.vel[:, 2] < -0.3
-    outer_minus_inner = np.concatenate(
-        [
-            hips[left_turn][:, [1, 3]].mean(axis=1) - hips[left_turn][:, [0, 2]].mean(axis=1),
-            hips[right_turn][:, [0, 2]].mean(axis=1) - hips[right_turn][:, [1, 3]].mean(axis=1),
-        ]
-    )
-    abduction = math.degrees(outer_minus_inner.mean()) if len(outer_minus_inner) else math.nan
-    done = np.nonzero(tr.pos[:, 0] >= poles[-1])[0]
-    t_end = tr.t[done[0]] if len(done) else math.nan
-    mean_speed = poles[-1] / t_end if len(done) else math.nan
-    plt = _plt()
-    fig, axes = plt.subplots(2, 1, figsize=(7.5, 7.0), gridspec_kw={"height_ratios": [1, 2]})
-    xs = np.linspace(0.0, poles[-1] + POLE_SPACING, 200)
-    axes[0].plot(xs, follower.path_y(xs), "k:", lw=0.8, label="reference")
-    axes[0].plot(tr.pos[:, 0], tr.pos[:, 1], label="trunk path")
-    for i, px in enumerate(poles):
-        axes[0].plot(px, 0.0, "o", color="tab:green" if passed[i] else "tab:red", ms=8)
-    axes[0].set(xlabel="x (m)", ylabel="y (m)", title=f"{sum(passed)} of {n_poles} poles passed")
-    axes[0].grid(alpha=0.3)
-    import legged_casters.robot.go2 as go2
-
-    colors = plt.cm.tab20(np.linspace(0, 1, len(go2.ACTUATED_JOINTS)))
-    for j, name in enumerate(go2.ACTUATED_JOINTS):
-        axes[1].plot(tr.t, tr.extra["joint_pos"][:, j], lw=0.8, color=colors[j], label=name.replace("_joint", ""))
-    axes[1].set(xlabel="time (s)", ylabel="joint angle (rad)")
-    axes[1].legend(fontsize=6, ncol=4)
-    axes[1].grid(alpha=0.3)
-    name = _save(fig, out, "fig8_slalom.png")
-    return Result(
-        "slalom",
-        "Fig. 1 / Fig. 8: slalom",
-        [
-            Row(
-                "Fig. 1 / Fig. 8 slalom, poles passed",
-                "all (video, Fig. 1)",
-                f"{sum(passed)} of {n_poles}",
-                f"caster_omni, poles {POLE_SPACING} m apart on a line; pure pursuit of y = {offset} cos(pi x / "
-                f"{POLE_SPACING}) (alternating sides), vx {speed} m/s, wz from the heading error; passed = on its "
-                f"side, trunk never within {clearance} m",
-            ),  # fmt: skip
-            Row(
-                "Fig. 1 / Fig. 8 slalom, mean forward speed",
-                "-",
-                f"{mean_speed:.2f} m/s",
-                "first pole line to the last, along x",
-            ),
-            Row(
-                "Fig. 8 abduction of the legs outside the turn",
-                "they open (abduct outwards)",
-                f"{abduction:+.1f} deg more than the inside legs",
-                "hip angles, outward positive, mean over the steps turning faster than 0.3 rad/s",
-            ),
-        ],
-        [(name, "Fig. 1 / Fig. 8: trunk path through the poles (green: passed), and the 12 joint angles")],
-        [
-            "The rule turns the robot (wz) rather than commanding sideways speed: the shipped caster policy's "
-            "sideways tracking is weak (README).",
-        ],
-    )
-
-
-SLOPE_DEG = 3.0
-
-
-def course_segments(quick: bool) -> tuple[float, list[tuple[float, float]], float]:
-    """(start_x, segments, end_x): flat, uphill, flat top, downhill, flat again."""
-    ramp, top, lead, tail = (6.0, 3.0, 4.0, 4.0) if quick else (25.0, 10.0, 10.0, 10.0)
-    segments = [(ramp, SLOPE_DEG), (top, 0.0), (ramp, -SLOPE_DEG)]
-    run = sum(length * math.cos(math.radians(slope)) for length, slope in segments)
-    return lead, segments, lead + run + tail
-
-
 class PathFollower:
-    """Pure pursuit of a closed polyline: the rule that drives every robot around the
-    loop. It tracks its progress along the path (never backwards), steers (wz,
+    """Pure pursuit of a polyline: the one steering rule of the slalom and of the loop.
+    It tracks its progress along the path (never backwards), steers (wz,
     proportional to the heading error, clipped) towards the path point `lookahead`
     metres further on, and commands a constant forward speed (vx)."""
 
@@ -632,6 +520,104 @@ def trained_on(task: str) -> str:
     return "trained on slopes" if t.segments and t.spawn_on_course else "trained on flat ground"
 
 
+def slalom_y(x, amplitude: float):
+    """The slalom's reference line y = -A cos(pi x / spacing): it passes the poles (at
+    x = spacing, 2 spacing, ...) on alternating sides."""
+    return -amplitude * np.cos(np.pi * np.asarray(x) / POLE_SPACING)
+
+
+def slalom(out: Path, quick: bool) -> Result:
+    """Fig. 1 / Fig. 8: weave through poles 1.8 m apart (caster_omni, the path follower on a weaving line)."""
+    n_poles, speed, offset, clearance = (4, 0.6, 0.4, 0.2) if quick else (8, 0.6, 0.4, 0.2)
+    poles = POLE_SPACING * np.arange(1, n_poles + 1)
+    line_x = np.arange(0.0, poles[-1] + 2 * POLE_SPACING, 0.05)
+    follower = PathFollower(np.c_[line_x, slalom_y(line_x, offset)], speed, lookahead=0.8)
+    duration = (n_poles + 2) * POLE_SPACING / speed + 2.0
+    tr = run_policy("caster_omni", duration, follower, until=lambda env: follower.done)
+    passed = []
+    for px in poles:
+        k = np.nonzero(tr.pos[:, 0] >= px)[0]
+        if not len(k) or not tr.upright[k[0]]:
+            passed.append(False)
+            continue
+        side = float(np.sign(slalom_y(px, offset)))
+        d = np.hypot(tr.pos[:, 0] - px, tr.pos[:, 1]).min()
+        passed.append(bool(side * tr.pos[k[0], 1] > 0 and d > clearance))
+    # Fig. 8: hip abduction outwards (left legs +, right legs -) of the legs outside the turn minus inside.
+    hips = tr.extra["joint_pos"][:, 0::3] * np.array([1.0, -1.0, 1.0, -1.0])  # FL, FR, RL, RR outward
+    left_turn, right_turn = tr.vel[:, 2] > 0.3, tr.vel[:, 2] < -0.3
+    outer_minus_inner = np.concatenate(
+        [
+            hips[left_turn][:, [1, 3]].mean(axis=1) - hips[left_turn][:, [0, 2]].mean(axis=1),
+            hips[right_turn][:, [0, 2]].mean(axis=1) - hips[right_turn][:, [1, 3]].mean(axis=1),
+        ]
+    )
+    abduction = math.degrees(outer_minus_inner.mean()) if len(outer_minus_inner) else math.nan
+    done = np.nonzero(tr.pos[:, 0] >= poles[-1])[0]
+    t_end = tr.t[done[0]] if len(done) else math.nan
+    mean_speed = poles[-1] / t_end if len(done) else math.nan
+    plt = _plt()
+    fig, axes = plt.subplots(2, 1, figsize=(7.5, 7.0), gridspec_kw={"height_ratios": [1, 2]})
+    xs = np.linspace(0.0, poles[-1] + POLE_SPACING, 200)
+    axes[0].plot(xs, slalom_y(xs, offset), "k:", lw=0.8, label="reference")
+    axes[0].plot(tr.pos[:, 0], tr.pos[:, 1], label="trunk path")
+    for i, px in enumerate(poles):
+        axes[0].plot(px, 0.0, "o", color="tab:green" if passed[i] else "tab:red", ms=8)
+    axes[0].set(xlabel="x (m)", ylabel="y (m)", title=f"{sum(passed)} of {n_poles} poles passed")
+    axes[0].grid(alpha=0.3)
+    import legged_casters.robot.go2 as go2
+
+    colors = plt.cm.tab20(np.linspace(0, 1, len(go2.ACTUATED_JOINTS)))
+    for j, name in enumerate(go2.ACTUATED_JOINTS):
+        axes[1].plot(tr.t, tr.extra["joint_pos"][:, j], lw=0.8, color=colors[j], label=name.replace("_joint", ""))
+    axes[1].set(xlabel="time (s)", ylabel="joint angle (rad)")
+    axes[1].legend(fontsize=6, ncol=4)
+    axes[1].grid(alpha=0.3)
+    name = _save(fig, out, "fig8_slalom.png")
+    return Result(
+        "slalom",
+        "Fig. 1 / Fig. 8: slalom",
+        [
+            Row(
+                "Fig. 1 / Fig. 8 slalom, poles passed",
+                "all (video, Fig. 1)",
+                f"{sum(passed)} of {n_poles}",
+                f"caster_omni, poles {POLE_SPACING} m apart on a line; pure pursuit of y = -{offset} cos(pi x / "
+                f"{POLE_SPACING}) (alternating sides), vx {speed} m/s, wz from the heading error; passed = on its "
+                f"side, trunk never within {clearance} m",
+            ),  # fmt: skip
+            Row(
+                "Fig. 1 / Fig. 8 slalom, mean forward speed",
+                "-",
+                f"{mean_speed:.2f} m/s",
+                "first pole line to the last, along x",
+            ),
+            Row(
+                "Fig. 8 abduction of the legs outside the turn",
+                "they open (abduct outwards)",
+                f"{abduction:+.1f} deg more than the inside legs",
+                "hip angles, outward positive, mean over the steps turning faster than 0.3 rad/s",
+            ),
+        ],
+        [(name, "Fig. 1 / Fig. 8: trunk path through the poles (green: passed), and the 12 joint angles")],
+        [
+            "The rule turns the robot (wz) rather than commanding sideways speed: the shipped caster policy's "
+            "sideways tracking is weak (README).",
+        ],
+    )
+
+
+SLOPE_DEG = 3.0
+
+
+def course_segments(quick: bool) -> tuple[float, list[tuple[float, float]], float]:
+    """(start_x, segments, end_x): flat, uphill, flat top, downhill, flat again."""
+    ramp, top, lead, tail = (6.0, 3.0, 4.0, 4.0) if quick else (25.0, 10.0, 10.0, 10.0)
+    segments = [(ramp, SLOPE_DEG), (top, 0.0), (ramp, -SLOPE_DEG)]
+    run = sum(length * math.cos(math.radians(slope)) for length, slope in segments)
+    return lead, segments, lead + run + tail
+
+
 def loop_path(end: float, radius: float, laps: int, spacing: float = 0.25) -> np.ndarray:
     """Laps of a stadium loop: out along y = 0 from x = 0 to `end`, a half circle, back
     along y = 2 radius, a half circle home."""
@@ -652,6 +638,7 @@ def campus(out: Path, quick: bool) -> Result:
     from legged_casters.tools.cot import ROBOTS
 
     start, segments, end = course_segments(quick)
+    course = terrain.Course(segments, start)
     radius, laps = 3.0, (1 if quick else 2)
     path = loop_path(end, radius, laps)
     overrides = {
@@ -668,7 +655,7 @@ def campus(out: Path, quick: bool) -> Result:
         tr = run_policy(task, 1.5 * length + 20.0, follower, overrides=overrides, until=lambda env, f=follower: f.done)
         traces[robot] = tr
         step = np.r_[0.0, np.linalg.norm(np.diff(tr.pos[:, :2], axis=0), axis=1)]
-        ground = np.array([terrain.height_at(segments, x, start) for x in tr.pos[:, 0]])
+        ground = course.height(tr.pos[:, 0])
         climb = np.r_[0.0, np.diff(ground)]
         grade = np.divide(climb, step, out=np.zeros_like(climb), where=step > 1e-6)
         threshold = 0.5 * math.sin(math.radians(SLOPE_DEG))
@@ -697,7 +684,7 @@ def campus(out: Path, quick: bool) -> Result:
     plt = _plt()
     fig, axes = plt.subplots(2, 1, figsize=(7.5, 6.5))
     xs = np.linspace(-radius - 1.0, end + radius + 1.0, 400)
-    axes[0].fill_between(xs, [terrain.height_at(segments, v, start) for v in xs], color="0.8")
+    axes[0].fill_between(xs, course.height(xs), color="0.8")
     axes[0].set(
         xlabel="x (m)",
         ylabel="ground height (m)",
