@@ -3,15 +3,18 @@
 #   ./setup.sh train [train.py flags]   the main job on this machine's default backend
 #   ./setup.sh test  [pytest flags]     the test suite
 #   ./setup.sh install                  only install
+#   ./setup.sh unitree                  also install the Go2 adapter's SDK (Unitree's unitree-sdk2
+#                                       and CycloneDDS 0.10.2, built against the C library
+#                                       cyclonedds-dev, installed with apt-get where it is missing)
 # Environment: PYTHON (default python3), VENV (default .venv).
 set -euo pipefail
 cd "$(dirname "$0")"
 
-usage="usage: ./setup.sh [install|train|test] [args...]   (default: install; env: PYTHON, VENV)"
+usage="usage: ./setup.sh [install|train|test|unitree] [args...]   (default: install; env: PYTHON, VENV)"
 task=${1-install}
 [ $# -gt 0 ] && shift
 case "$task" in
-  install|train|test) ;;
+  install|train|test|unitree) ;;
   *) echo "$usage  (got '$task')" >&2; exit 2 ;;
 esac
 
@@ -46,7 +49,38 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ] || ! "$PY" -c 'import l
   echo "$want" > "$stamp"
 fi
 
+if [ "$task" = unitree ]; then
+  # CycloneDDS for Python 0.10.2 (the SDK's pin) has no wheel for this Python: it builds
+  # against the C library 0.10.x, which Debian/Ubuntu package as cyclonedds-dev.
+  if [ -z "${CYCLONEDDS_HOME:-}" ] && [ ! -f /usr/include/dds/dds.h ]; then
+    if command -v apt-get >/dev/null 2>&1 && [ "$(id -u)" = 0 ]; then
+      echo "[setup] installing the CycloneDDS C library (apt-get install cyclonedds-dev)"
+      apt-get install -y -q cyclonedds-dev >/dev/null || { apt-get update -q >/dev/null && apt-get install -y -q cyclonedds-dev >/dev/null; }
+    else
+      echo "[setup] the CycloneDDS 0.10 C library is missing: 'sudo apt-get install cyclonedds-dev', or build" \
+           "CycloneDDS 0.10.x and set CYCLONEDDS_HOME to its install prefix; then run ./setup.sh unitree again" >&2
+      exit 1
+    fi
+  fi
+  if [ -z "${CYCLONEDDS_HOME:-}" ]; then
+    # Debian installs the library under lib/<multiarch>; the Python package's build looks
+    # in <prefix>/lib and <prefix>/include, so give it a prefix of links.
+    libdir=$(dirname "$(find /usr/lib /usr/lib64 -name 'libddsc.so' 2>/dev/null | head -n 1)")
+    CYCLONEDDS_HOME="$VENV/cyclonedds-prefix"
+    mkdir -p "$CYCLONEDDS_HOME"
+    ln -sfn /usr/include "$CYCLONEDDS_HOME/include"
+    ln -sfn "$libdir" "$CYCLONEDDS_HOME/lib"
+    ln -sfn /usr/bin "$CYCLONEDDS_HOME/bin"
+  fi
+  if ! "$PY" -c 'from legged_casters.deploy import unitree; unitree.load_sdk()' 2>/dev/null; then
+    echo "[setup] installing unitree-sdk2 and cyclonedds (CYCLONEDDS_HOME=$CYCLONEDDS_HOME)"
+    CYCLONEDDS_HOME="$CYCLONEDDS_HOME" pip_install -e ".[dev,unitree]"
+  fi
+  "$PY" -c 'from legged_casters.deploy import unitree; unitree.load_sdk(); print("[setup] unitree_sdk2py imports")'
+fi
+
 case "$task" in
+  unitree) ;;
   install) echo "[setup] done: activate with 'source $VENV/bin/activate'" ;;
   train)
     if [ -f train.py ]; then

@@ -173,6 +173,10 @@ def test_protocol_roundtrip_and_typed_rejections():
     x = standing_state(s)
     x.quat = [2.0, 0.0, 0.0, 0.0]
     cases["out_of_range"].append(x.encode())
+    for flags in (0x01, 0x80):  # no state flag bits are defined: docs/deploy.md
+        x = standing_state(s)
+        x.flags = flags
+        cases["out_of_range"].append(x.encode())
     for reason, payloads in cases.items():
         for buf in payloads:
             with pytest.raises(P.ProtocolError) as e:
@@ -192,6 +196,18 @@ def test_sequence_filter_replay_reorder_restart():
     f.check(P.Header(epoch=2, seq=0))  # the sender restarted: new epoch accepted
     with pytest.raises(P.ProtocolError, match="replaced"):
         f.check(P.Header(epoch=1, seq=100))  # a replay of the old session cannot take over
+
+
+def test_a_far_future_seq_cannot_lock_the_stream_out():
+    """One message of the current epoch with a seq far ahead is rejected; the real stream
+    goes on; a gap within the window (lost messages) is accepted."""
+    f = P.SequenceFilter()
+    f.check(P.Header(epoch=1, seq=10))
+    with pytest.raises(P.ProtocolError, match="jumps more than"):
+        f.check(P.Header(epoch=1, seq=0xFFFFFFFF))
+    f.check(P.Header(epoch=1, seq=11))
+    f.check(P.Header(epoch=1, seq=11 + P.SequenceFilter.WINDOW))
+    assert f.last_seq == 11 + P.SequenceFilter.WINDOW
 
 
 def test_zenoh_config_file_pass_through(tmp_path):

@@ -183,7 +183,7 @@ class RobotState:
     quat: IMU orientation (w, x, y, z), trunk to world; gyro: IMU angular velocity in
     the trunk frame (rad/s); q / dq: joint angles (rad) and velocities (rad/s), n of
     each; robot_mode: the CommandMode the robot is applying (NONE, HOLD or DAMPING when
-    its own watchdog fired); flags: reserved, 0.
+    its own watchdog fired); flags: no bits defined, must be 0 (anything else is rejected).
     """
 
     quat: list[float]
@@ -215,6 +215,8 @@ class RobotState:
         _check_finite(floats + joints, "state")
         if mode not in CommandMode._value2member_map_:
             raise ProtocolError("out_of_range", f"robot_mode {mode}")
+        if flags:
+            raise ProtocolError("out_of_range", f"state flags {flags:#04x}: no flag bits are defined (send 0)")
         quat = list(floats[0:4])
         norm = math.sqrt(sum(x * x for x in quat))
         if abs(norm - 1.0) > 0.05:
@@ -447,19 +449,30 @@ class SequenceFilter:
     (a replay or a late, reordered message is rejected). A new epoch (the sender
     restarted) is accepted and replaces the current one; messages from an epoch seen
     before and replaced are rejected for good, so a replay of an old session cannot
-    take over."""
+    take over.
 
-    def __init__(self, max_retired: int = 64):
+    Within an epoch a message may skip at most `window` sequence numbers (lost
+    messages); one that jumps further ahead is rejected, so a single corrupt or forged
+    message with a far-future seq cannot lock the real stream out. The default window,
+    65536 messages, is over two minutes of a 500 Hz stream: a sender that lost more than
+    that restarts (a new epoch)."""
+
+    WINDOW = 1 << 16
+
+    def __init__(self, max_retired: int = 64, window: int = WINDOW):
         self.epoch: int | None = None
         self.last_seq = -1
         self._retired: list[int] = []
         self._max_retired = max_retired
+        self.window = window
 
     def check(self, h: Header) -> None:
         """Raise ProtocolError('out_of_order') or record h as the newest message."""
         if h.epoch == self.epoch:
             if h.seq <= self.last_seq:
                 raise ProtocolError("out_of_order", f"seq {h.seq} after {self.last_seq}")
+            if h.seq - self.last_seq > self.window:
+                raise ProtocolError("out_of_order", f"seq {h.seq} jumps more than {self.window} past {self.last_seq}")
         else:
             if h.epoch in self._retired:
                 raise ProtocolError("out_of_order", f"epoch {h.epoch:#x} was replaced by a newer sender")

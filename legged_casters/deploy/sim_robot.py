@@ -125,11 +125,16 @@ class SimRobot:
                 raise P.ProtocolError("malformed", f"command for {len(msg.q)} joints, this robot has {self.n}")
             with self._lock:
                 self.cmd_filter.check(msg.header)
-                self._cmd, self._cmd_arrival = msg, now
-                self.commands_received += 1
+            self.accept(msg, now)
         except P.ProtocolError as e:
             with self._lock:
                 self.rejected[e.reason] += 1
+
+    def accept(self, msg: P.JointCommand, now: float) -> None:
+        """Apply a checked command from the next physics step on (and restart the watchdog)."""
+        with self._lock:
+            self._cmd, self._cmd_arrival = msg, now
+            self.commands_received += 1
 
     # --- physics ---------------------------------------------------------------------
     def _gains(self, now: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, P.CommandMode]:

@@ -24,6 +24,23 @@ PASSIVE_JOINTS: tuple[str, ...] = SWIVEL_JOINTS + WHEEL_JOINTS
 DRIVE_WHEEL_JOINTS: tuple[str, ...] = tuple(f"{leg}_wheel_joint" for leg in LEGS)
 """The driving-wheel robot's 4 actuated wheel joints (FL, FR, RL, RR)."""
 
+UNITREE_LEG_ORDER: tuple[str, ...] = ("FR", "FL", "RR", "RL")
+"""The order of the legs in Unitree's low-level messages (LowState/LowCmd motor_state,
+motor_cmd): motor index = 3 * position of the leg here + (hip 0, thigh 1, calf 2).
+Our order (LEGS) swaps left and right. Source: the LegID table of Unitree's SDK and
+its Go2 stand example (docs/deploy.md); not checked on a robot."""
+
+UNITREE_MOTOR: dict[str, int] = {
+    **{
+        f"{leg}_{kind}_joint": 3 * UNITREE_LEG_ORDER.index(leg) + k
+        for leg in LEGS
+        for k, kind in enumerate(JOINT_KINDS)
+    },
+    **{f"{leg}_wheel_joint": 12 + UNITREE_LEG_ORDER.index(leg) for leg in LEGS},
+}
+"""Joint name -> motor index in Unitree's LowState/LowCmd. The Go2-W's wheel motors are
+12-15 in the same leg order (third-party Go2-W configurations; not checked on a robot)."""
+
 TRUNK_BODY = "trunk"
 IMU_SITE = "imu"
 ROOT_JOINT = "root"

@@ -1,0 +1,186 @@
+"""A fake Go2 for tests: the MuJoCo robot of `sim_robot` behind Unitree's low-level DDS
+topics, on the loopback interface only.
+
+    python -m legged_casters.deploy.fake_go2 --domain-id 7 --listen tcp/127.0.0.1:7447
+
+It publishes ``rt/lowstate`` (unitree_sdk2's ``LowState_``: IMU quaternion and gyro,
+motor q / dq in Unitree's motor order, a millisecond ``tick``) at ``--state-rate`` and
+consumes ``rt/lowcmd`` (``LowCmd_``) the way we understand the robot to: a command
+whose CRC does not match is ignored; a motor slot in servo mode (0x01) applies
+``tau = kp (q - q_meas) + kd (dq - dq_meas)`` in the physics loop, clipped to the torque
+limits; a slot that is off applies nothing. Physics, start-up (``--startup``) and the
+motor-side watchdog (damping after ``--watchdog-ms`` without a valid LowCmd) are
+`sim_robot`'s. Whether a real Go2 damps, holds or goes limp when LowCmd stops is not
+known here: the adapter never relies on it.
+
+With zenoh endpoints (``--listen`` / ``--connect``) it also publishes ``<ns>/sim/truth``
+(trunk position and velocity) for tests; it never publishes our state message: that is
+the adapter's job.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import numpy as np
+
+from legged_casters.deploy import protocol as P
+from legged_casters.deploy import transport, unitree
+from legged_casters.deploy.sim_robot import SimRobot
+from legged_casters.robot import build
+
+LOOPBACK = ("lo", "lo0")
+
+
+class FakeGo2(SimRobot):
+    def __init__(self, sdk: unitree.Sdk, publish_truth=None, **kwargs):
+        super().__init__(self._publish, **kwargs)
+        self.sdk = sdk
+        self.map = unitree.MotorMap.for_robot(kwargs.get("robot", "caster"))
+        self.publish_truth = publish_truth
+        self.low = sdk.new_lowstate()
+        self.low_pub = sdk.ChannelPublisher(unitree.LOWSTATE_TOPIC, sdk.LowState)
+        self.low_pub.Init()
+        self.cmd_sub = sdk.ChannelSubscriber(unitree.LOWCMD_TOPIC, sdk.LowCmd)
+        self.cmd_sub.Init(self.on_lowcmd, 10)
+        self.bad_crc = 0
+        self.lowstates = 0
+        self.cmd_sender = P.Sender()
+
+    def _publish(self, which: str, payload: bytes) -> None:
+        if which == "truth" and self.publish_truth is not None:
+            self.publish_truth(payload)
+
+    def on_lowcmd(self, cmd) -> None:
+        """DDS thread: a LowCmd -> the command the physics loop applies."""
+        now = time.monotonic()
+        if cmd.crc != unitree.lowcmd_crc(cmd) or tuple(cmd.head) != unitree.HEAD:
+            with self._lock:
+                self.bad_crc += 1
+            return
+        servo, q, dq, kp, kd = self.map.read_command(cmd)
+        if not all(np.isfinite(v).all() for v in (q[servo], dq[servo], kp, kd)):
+            with self._lock:
+                self.rejected["nonfinite"] += 1
+            return
+        off = ~servo
+        q, dq, kp, kd = np.where(off, 0.0, q), np.where(off, 0.0, dq), np.where(off, 0.0, kp), np.where(off, 0.0, kd)
+        mode = P.CommandMode.DAMPING if not kp.any() else P.CommandMode.POLICY
+        msg = P.JointCommand(
+            mode=mode,
+            q=q.tolist(),
+            kp=kp.tolist(),
+            kd=kd.tolist(),
+            dq=dq.tolist(),
+            header=self.cmd_sender.next_header(),
+        )
+        self.accept(msg, now)
+
+    def _publish_state(self, stamp_ns: int) -> None:
+        s = self.data.sensordata
+        self.low.tick = int(self.data.time * 1000) & 0xFFFFFFFF
+        self.map.write_state(self.low, s[self._quat], s[self._gyro], s[self._qs], s[self._dqs])
+        self.low_pub.Write(self.low)
+        self.lowstates += 1
+        h = self.truth_sender.next_header()
+        h.stamp_ns = stamp_ns
+        self._publish("truth", P.SimTruth(self.data.time, self.data.qpos[0:3], self.data.qvel[0:3], h).encode())
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="fake_go2", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument("--robot", choices=tuple(build.MODEL_FILES), default="caster")
+    p.add_argument("--domain-id", type=int, default=0, help="DDS domain (default: 0, the Go2's)")
+    p.add_argument("--network-interface", default="lo", help="loopback only (default: lo)")
+    p.add_argument("--state-rate", type=float, default=500.0, help="LowState messages per second (default: 500)")
+    p.add_argument("--watchdog-ms", type=float, default=100.0, help="damp after this long without a LowCmd")
+    p.add_argument("--damping-kd", type=float, default=1.0)
+    p.add_argument(
+        "--startup",
+        choices=("hold", "damping"),
+        default="hold",
+        help="before the first LowCmd: hold the stand pose (default), or damp (the robot sinks to the "
+        "floor; the bridge's stand-up does not lift a caster robot from there, docs/deploy.md)",
+    )
+    p.add_argument("--duration", type=float, default=0.0, help="seconds (0: until Ctrl-C)")
+    p.add_argument("--summary-every", type=float, default=10.0, help="seconds between status lines (0: none)")
+    transport.add_zenoh_args(p)
+    args = p.parse_args(argv)
+    if args.network_interface not in LOOPBACK:
+        print(
+            f"fake_go2: error: --network-interface {args.network_interface}: the fake robot runs on loopback only "
+            "(lo), so that it can never talk to a real robot's network",
+            file=sys.stderr,
+        )
+        return 2
+    try:
+        sdk = unitree.load_sdk()
+    except unitree.SdkUnavailable as err:
+        print(f"fake_go2: error: {err}", file=sys.stderr)
+        return 2
+    session, truth_pub = None, None
+    if args.listen or args.connect:
+        try:
+            session = transport.open_session(args)
+        except transport.SessionError as err:
+            print(f"fake_go2: error: {err}", file=sys.stderr)
+            return 2
+        truth_pub = session.declare_publisher(P.keys(args.namespace)["truth"])
+    sdk.ChannelFactoryInitialize(args.domain_id, args.network_interface)
+    r = FakeGo2(
+        sdk,
+        publish_truth=truth_pub.put if truth_pub is not None else None,
+        robot=args.robot,
+        state_rate=args.state_rate,
+        watchdog=args.watchdog_ms / 1e3,
+        damping_kd=args.damping_kd,
+        startup=args.startup,
+    ).start()
+    print(
+        f"fake_go2: {args.robot} on DDS domain {args.domain_id} ({args.network_interface}), physics "
+        f"{1 / r.dt:.0f} Hz, LowState {1 / (r.dt * r.decimation):.0f} Hz; motors {r.map.describe()}",
+        flush=True,
+    )
+    try:
+        t0 = time.monotonic()
+        t_end = t0 + args.duration if args.duration > 0 else float("inf")
+        seen, next_summary, last_cmds = 0, t0 + args.summary_every, 0
+        while time.monotonic() < t_end:
+            time.sleep(min(0.2, max(0.0, t_end - time.monotonic())))
+            changes = list(r.mode_changes)
+            for k in range(max(seen, 1), len(changes)):
+                why = ""
+                if changes[k][1] == P.CommandMode.DAMPING:
+                    silent = r.commands_received == 0 or time.monotonic() - r._cmd_arrival > r.watchdog
+                    why = " (no LowCmd for the watchdog time)" if silent else " (LowCmd with kp 0)"
+                print(f"fake_go2: {changes[k - 1][1].name} -> {changes[k][1].name}{why}", flush=True)
+            seen = len(changes)
+            if args.summary_every > 0 and time.monotonic() >= next_summary:
+                rate = (r.commands_received - last_cmds) / args.summary_every
+                last_cmds, next_summary = r.commands_received, next_summary + args.summary_every
+                print(
+                    f"fake_go2: {r.mode.name}, LowCmd {rate:.0f}/s, bad CRC {r.bad_crc}, sim time "
+                    f"{r.steps * r.dt:.1f} s, overruns {r.overruns}, trunk z {r.data.qpos[2]:.2f} m",
+                    flush=True,
+                )
+    except KeyboardInterrupt:
+        pass
+    finally:
+        r.stop()
+        if session is not None:
+            session.close()
+    print(
+        f"fake_go2: {r.steps} steps ({r.steps * r.dt:.1f} s), LowState {r.lowstates}, LowCmd {r.commands_received}, "
+        f"bad CRC {r.bad_crc}, mode {r.mode.name}, trunk at ({r.data.qpos[0]:.3f}, {r.data.qpos[1]:.3f}, "
+        f"{r.data.qpos[2]:.3f}) m",
+        flush=True,
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,303 @@
+"""The robot side of the bridge on a real Go2: Unitree's low-level DDS interface <-> our
+zenoh wire protocol (docs/deploy.md).
+
+    # on the robot's computer, or a PC on the robot's Ethernet (the Go2's sport mode off):
+    python -m legged_casters.deploy.go2_adapter --network-interface eth0 --real-robot \\
+        --listen tcp/0.0.0.0:7447
+    # first, without moving anything: forwards states, logs what it would send
+    python -m legged_casters.deploy.go2_adapter --network-interface eth0 --dry-run --listen tcp/0.0.0.0:7447
+
+What it does:
+
+* ``rt/lowstate`` (LowState_) -> ``<ns>/state`` (RobotState): IMU quaternion and gyro,
+  q / dq of our joints read from Unitree's motor slots (go2.UNITREE_MOTOR; printed at
+  start), stamped with this computer's monotonic clock on arrival; every
+  ``--state-every``-th LowState (default 1: all of them). ``robot_mode`` is what the
+  adapter is sending. A LowState with a non-finite value or a quaternion that is not
+  unit is dropped and counted.
+* ``<ns>/cmd`` (JointCommand) -> ``rt/lowcmd`` (LowCmd_): checked like sim_robot checks
+  it (decode, joint count, sequence filter), then the newest command is written at
+  ``--cmd-rate`` (default 500 Hz), every driven motor in servo mode with the command's
+  q, dq, kp, kd and tau 0, unused slots off, head/level_flag as Unitree's examples set
+  them, and the CRC the robot checks.
+* Its own watchdog: no valid command for ``--watchdog-ms`` (default 100) -> it writes
+  damping (kp 0, kd ``--damping-kd``) until commands resume. Before the first command
+  it writes nothing, so the robot keeps whatever it was doing.
+* Safety: on any interface other than loopback it refuses to start unless told
+  ``--real-robot`` (or ``--dry-run``, which never writes ``rt/lowcmd``).
+* Live status: a line on every change of what it sends (NONE -> STANDUP -> POLICY,
+  -> DAMPING with the reason) and a summary every ``--summary-every`` seconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import threading
+import time
+
+import numpy as np
+
+from legged_casters.deploy import protocol as P
+from legged_casters.deploy import transport, unitree
+from legged_casters.robot import build
+
+LOOPBACK = ("lo", "lo0")
+
+
+class Go2Adapter:
+    """Both directions and the watchdog; `publish_state(bytes)` sends a RobotState,
+    `write_lowcmd(LowCmd)` writes to the robot (None: dry run)."""
+
+    def __init__(
+        self,
+        sdk: unitree.Sdk,
+        publish_state,
+        write_lowcmd,
+        robot: str = "caster",
+        watchdog: float = 0.1,
+        damping_kd: float = 1.0,
+        state_every: int = 1,
+    ):
+        self.sdk = sdk
+        self.map = unitree.MotorMap.for_robot(robot)
+        self.n = len(self.map)
+        self.publish_state = publish_state
+        self.write_lowcmd = write_lowcmd
+        self.watchdog = watchdog
+        self.damping_kd = damping_kd
+        self.state_every = max(1, int(state_every))
+        self._lock = threading.Lock()
+        self._cmd: P.JointCommand | None = None
+        self._cmd_arrival = 0.0
+        self._q = np.zeros(self.n)
+        self.cmd_filter = P.SequenceFilter()
+        self.state_sender = P.Sender()
+        self.lowcmd = sdk.new_lowcmd()
+        self.mode = P.CommandMode.NONE
+        self.mode_changes: list[tuple[float, P.CommandMode, str]] = [(time.monotonic(), self.mode, "")]
+        self.rejected = dict.fromkeys(P.REJECT_REASONS, 0)
+        self.bad_lowstates = 0
+        self.lowstates = 0
+        self.commands_received = 0
+        self.lowcmds_written = 0
+        self.last_written: tuple[np.ndarray, ...] | None = None
+        self._running = False
+        self._thread: threading.Thread | None = None
+
+    # --- robot -> bridge --------------------------------------------------------------
+    def on_lowstate(self, low) -> None:
+        quat, gyro, q, dq = self.map.read_state(low)
+        with self._lock:
+            self.lowstates += 1
+            count = self.lowstates
+        if not all(np.isfinite(v).all() for v in (quat, gyro, q, dq)) or abs(np.linalg.norm(quat) - 1.0) > 0.05:
+            with self._lock:
+                self.bad_lowstates += 1
+            return
+        with self._lock:
+            self._q = q
+        if count % self.state_every:
+            return
+        h = self.state_sender.next_header()
+        msg = P.RobotState(
+            quat=quat.tolist(), gyro=gyro.tolist(), q=q.tolist(), dq=dq.tolist(), robot_mode=self.mode, header=h
+        )
+        self.publish_state(msg.encode())
+
+    # --- bridge -> robot --------------------------------------------------------------
+    def on_command(self, payload: bytes) -> None:
+        now = time.monotonic()
+        try:
+            msg = P.JointCommand.decode(payload)
+            if len(msg.q) != self.n:
+                raise P.ProtocolError("malformed", f"command for {len(msg.q)} joints, this robot has {self.n}")
+            with self._lock:
+                self.cmd_filter.check(msg.header)
+                self._cmd, self._cmd_arrival = msg, now
+                self.commands_received += 1
+        except P.ProtocolError as e:
+            with self._lock:
+                self.rejected[e.reason] += 1
+
+    def targets(self, now: float) -> tuple[P.CommandMode, str, tuple[np.ndarray, ...] | None]:
+        """(mode, reason, (q, dq, kp, kd)) to write now; None: write nothing."""
+        with self._lock:
+            cmd, arrival, q_meas = self._cmd, self._cmd_arrival, self._q
+        zeros = np.zeros(self.n)
+        if cmd is None:
+            return P.CommandMode.NONE, "", None
+        if now - arrival > self.watchdog:
+            why = f"no command for {1e3 * self.watchdog:.0f} ms"
+            return P.CommandMode.DAMPING, why, (q_meas, zeros, zeros, np.full(self.n, self.damping_kd))
+        q, kd = np.asarray(cmd.q), np.asarray(cmd.kd)
+        if cmd.mode == P.CommandMode.DAMPING:
+            return P.CommandMode.DAMPING, "the bridge asks for damping", (q, zeros, zeros, kd)
+        dq = np.asarray(cmd.dq) if cmd.dq is not None else zeros
+        return P.CommandMode(cmd.mode), "", (q, dq, np.asarray(cmd.kp), kd)
+
+    def tick(self, now: float) -> None:
+        mode, why, t = self.targets(now)
+        if mode != self.mode:
+            self.mode = mode
+            self.mode_changes.append((now, mode, why))
+        if t is None:
+            return
+        self.map.write_command(self.lowcmd, *t)
+        self.last_written = t
+        if self.write_lowcmd is not None:
+            self.write_lowcmd(self.lowcmd)
+        self.lowcmds_written += 1
+
+    def _loop(self, rate: float) -> None:
+        period = 1.0 / rate
+        t0, k = time.monotonic(), 0
+        while self._running:
+            deadline = t0 + k * period
+            now = time.monotonic()
+            if deadline > now:
+                time.sleep(deadline - now)
+                now = time.monotonic()
+            elif now - deadline > 0.05:
+                t0, k = now, 0
+            self.tick(now)
+            k += 1
+
+    def start(self, rate: float) -> Go2Adapter:
+        self._running = True
+        self._thread = threading.Thread(target=self._loop, args=(rate,), name="go2-lowcmd", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._running = False
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+
+
+def check_interface(interface: str, real_robot: bool, dry_run: bool) -> str | None:
+    """The refusal message, or None when the adapter may start."""
+    if interface in LOOPBACK or real_robot or dry_run:
+        return None
+    return (
+        f"--network-interface {interface} is a real network: add --real-robot to command the robot on it "
+        "(its sport mode must be off), or --dry-run to only forward states and log the commands"
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="go2_adapter", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument(
+        "--robot",
+        choices=tuple(build.MODEL_FILES),
+        default="caster",
+        help="joint set: caster / point (12 legs), wheel (Go2-W: 12 legs + 4 wheels)",
+    )
+    p.add_argument("--network-interface", default="lo", help="the robot's network, e.g. eth0 (default: lo)")
+    p.add_argument("--domain-id", type=int, default=0, help="DDS domain (default: 0, the Go2's)")
+    p.add_argument("--real-robot", action="store_true", help="allow a non-loopback interface: commands the robot")
+    p.add_argument("--dry-run", action="store_true", help="never write rt/lowcmd; log what would be sent")
+    p.add_argument("--cmd-rate", type=float, default=500.0, help="LowCmd messages per second (default: 500)")
+    p.add_argument("--state-every", type=int, default=1, help="forward every N-th LowState (default: 1, all)")
+    p.add_argument("--watchdog-ms", type=float, default=100.0, help="damp after this long without a command")
+    p.add_argument("--damping-kd", type=float, default=1.0)
+    p.add_argument("--duration", type=float, default=0.0, help="seconds (0: until Ctrl-C)")
+    p.add_argument("--summary-every", type=float, default=10.0, help="seconds between status lines (0: none)")
+    transport.add_zenoh_args(p)
+    args = p.parse_args(argv)
+    refusal = check_interface(args.network_interface, args.real_robot, args.dry_run)
+    if refusal:
+        print(f"go2_adapter: error: {refusal}", file=sys.stderr)
+        return 2
+    if not (args.cmd_rate > 0 and math.isfinite(args.cmd_rate)):
+        print("go2_adapter: error: --cmd-rate must be a positive number of messages per second", file=sys.stderr)
+        return 2
+    try:
+        sdk = unitree.load_sdk()
+        session = transport.open_session(args)
+    except (unitree.SdkUnavailable, transport.SessionError) as err:
+        print(f"go2_adapter: error: {err}", file=sys.stderr)
+        return 2
+    keys = P.keys(args.namespace)
+    state_pub = transport.fast_publisher(session, keys["state"])
+    sdk.ChannelFactoryInitialize(args.domain_id, args.network_interface)
+    writer = None
+    if not args.dry_run:
+        lowcmd_pub = sdk.ChannelPublisher(unitree.LOWCMD_TOPIC, sdk.LowCmd)
+        lowcmd_pub.Init()
+        writer = lowcmd_pub.Write
+    a = Go2Adapter(
+        sdk,
+        state_pub.put,
+        writer,
+        robot=args.robot,
+        watchdog=args.watchdog_ms / 1e3,
+        damping_kd=args.damping_kd,
+        state_every=args.state_every,
+    )
+    cmd_sub = session.declare_subscriber(keys["cmd"], lambda s: a.on_command(s.payload.to_bytes()))
+    low_sub = sdk.ChannelSubscriber(unitree.LOWSTATE_TOPIC, sdk.LowState)
+    low_sub.Init(a.on_lowstate, 10)
+    a.start(args.cmd_rate)
+    what = "DRY RUN: rt/lowcmd is never written" if args.dry_run else f"rt/lowcmd at {args.cmd_rate:.0f} Hz"
+    print(
+        f"go2_adapter: {args.robot}, DDS domain {args.domain_id} on {args.network_interface}, zenoh namespace "
+        f"{args.namespace}; {what}",
+        flush=True,
+    )
+    print(f"go2_adapter: joint -> Unitree motor: {a.map.describe()}", flush=True)
+    try:
+        t0 = time.monotonic()
+        t_end = t0 + args.duration if args.duration > 0 else float("inf")
+        seen, next_summary = 1, t0 + args.summary_every
+        last = (0, 0, 0)
+        waited = False
+        while time.monotonic() < t_end:
+            time.sleep(min(0.2, max(0.0, t_end - time.monotonic())))
+            changes = list(a.mode_changes)
+            for k in range(seen, len(changes)):
+                why = f" ({changes[k][2]})" if changes[k][2] else ""
+                print(f"go2_adapter: {changes[k - 1][1].name} -> {changes[k][1].name}{why}", flush=True)
+            seen = len(changes)
+            if not waited and a.lowstates == 0 and time.monotonic() - t0 > 5.0:
+                waited = True
+                print(
+                    f"go2_adapter: no LowState in 5 s on {args.network_interface}, domain {args.domain_id}: is the "
+                    "robot on and connected to this interface?",
+                    flush=True,
+                )
+            if args.summary_every > 0 and time.monotonic() >= next_summary:
+                now = (a.lowstates, a.commands_received, a.lowcmds_written)
+                rates = [(x - y) / args.summary_every for x, y in zip(now, last, strict=True)]
+                last, next_summary = now, next_summary + args.summary_every
+                rejected = {k: v for k, v in a.rejected.items() if v}
+                line = (
+                    f"go2_adapter: {a.mode.name}, LowState {rates[0]:.0f}/s, commands {rates[1]:.1f}/s, "
+                    f"LowCmd {rates[2]:.0f}/s{' (dry run, not sent)' if args.dry_run else ''}, "
+                    f"bad LowState {a.bad_lowstates}, rejected {rejected or 'none'}"
+                )
+                if args.dry_run and a.last_written is not None:
+                    q, _, kp, kd = a.last_written
+                    line += f"; would send q {np.round(q, 2).tolist()} kp {kp.max():.0f} kd {kd.max():.1f}"
+                print(line, flush=True)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        a.stop()
+        cmd_sub.undeclare()
+        low_sub.Close()
+        session.close()
+    print(
+        f"go2_adapter: LowState {a.lowstates} (bad {a.bad_lowstates}), commands {a.commands_received}, "
+        f"LowCmd {a.lowcmds_written}{' (dry run)' if args.dry_run else ''}, rejected {a.rejected}, "
+        f"mode {a.mode.name}",
+        flush=True,
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
