@@ -174,6 +174,11 @@ def test_adapter_translates_both_ways_and_damps_on_its_watchdog():
     assert a.rejected["malformed"] == 1
     a.on_command(cmd.encode())  # a replay
     assert a.rejected["out_of_order"] == 1
+    answer = P.JointCommand(P.CommandMode.POLICY, q.tolist(), [20.0] * 12, [0.5] * 12, state_seq=s.header.seq,
+                            header=sender.next_header())  # fmt: skip
+    a.on_command(answer.encode())
+    lat = a.take_latencies()
+    assert len(lat) == 1 and 0.0 <= lat[0] < 5.0  # the state it answers -> its arrival
     a.tick(time.monotonic())
     crc, motors = written[-1]
     assert a.mode == P.CommandMode.POLICY and motors[3] == (1, pytest.approx(q[0]), 20.0, 0.5)
@@ -278,9 +283,11 @@ def test_full_loop_fake_go2_adapter_bridge(tmp_path):
         adapter.send_signal(signal.SIGKILL)
         adapter.wait(10)
         assert wait_for(lambda: statuses[-1].fault == P.Fault.STALE_STATE, 2.0), "bridge did not fault"
+        time.sleep(0.3)  # past the fake robot's own 100 ms watchdog
     finally:
         probe.close()
         _stop(bridge, adapter, robot)
     out = robot.stdout.read() if robot.stdout else ""
-    assert "-> DAMPING (no LowCmd for the watchdog time)" in out, out[-2000:]
+    assert "POLICY -> DAMPING (damping commanded)" in out, out[-2000:]  # the adapter's watchdog
+    assert "POLICY -> DAMPING (no command for the watchdog time)" in out, out[-2000:]  # the fake's own
     assert "bad CRC 0" in out.splitlines()[-1]

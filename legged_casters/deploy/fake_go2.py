@@ -67,6 +67,7 @@ class FakeGo2(SimRobot):
             return
         off = ~servo
         q, dq, kp, kd = np.where(off, 0.0, q), np.where(off, 0.0, dq), np.where(off, 0.0, kp), np.where(off, 0.0, kd)
+        # LowCmd has no mode: all kp 0 is reported as damping (what the adapter sends for it)
         mode = P.CommandMode.DAMPING if not kp.any() else P.CommandMode.POLICY
         msg = P.JointCommand(
             mode=mode,
@@ -145,20 +146,14 @@ def main(argv: list[str] | None = None) -> int:
         f"{1 / r.dt:.0f} Hz, LowState {1 / (r.dt * r.decimation):.0f} Hz; motors {r.map.describe()}",
         flush=True,
     )
+    seen = 0
     try:
         t0 = time.monotonic()
         t_end = t0 + args.duration if args.duration > 0 else float("inf")
-        seen, next_summary, last_cmds = 0, t0 + args.summary_every, 0
+        next_summary, last_cmds = t0 + args.summary_every, 0
         while time.monotonic() < t_end:
             time.sleep(min(0.2, max(0.0, t_end - time.monotonic())))
-            changes = list(r.mode_changes)
-            for k in range(max(seen, 1), len(changes)):
-                why = ""
-                if changes[k][1] == P.CommandMode.DAMPING:
-                    silent = r.commands_received == 0 or time.monotonic() - r._cmd_arrival > r.watchdog
-                    why = " (no LowCmd for the watchdog time)" if silent else " (LowCmd with kp 0)"
-                print(f"fake_go2: {changes[k - 1][1].name} -> {changes[k][1].name}{why}", flush=True)
-            seen = len(changes)
+            seen = r.report_changes(seen, "fake_go2")
             if args.summary_every > 0 and time.monotonic() >= next_summary:
                 rate = (r.commands_received - last_cmds) / args.summary_every
                 last_cmds, next_summary = r.commands_received, next_summary + args.summary_every
@@ -173,6 +168,7 @@ def main(argv: list[str] | None = None) -> int:
         r.stop()
         if session is not None:
             session.close()
+        r.report_changes(seen, "fake_go2")
     print(
         f"fake_go2: {r.steps} steps ({r.steps * r.dt:.1f} s), LowState {r.lowstates}, LowCmd {r.commands_received}, "
         f"bad CRC {r.bad_crc}, mode {r.mode.name}, trunk at ({r.data.qpos[0]:.3f}, {r.data.qpos[1]:.3f}, "

@@ -106,7 +106,9 @@ class SimRobot:
         self.rejected = dict.fromkeys(P.REJECT_REASONS, 0)
         self.commands_received = 0
         self.mode = P.CommandMode.HOLD if startup == "hold" else P.CommandMode.DAMPING
-        self.mode_changes: list[tuple[float, P.CommandMode]] = [(time.monotonic(), self.mode)]
+        self._why = ""
+        self.mode_changes: list[tuple[float, P.CommandMode, str]] = [(time.monotonic(), self.mode, "")]
+        """(when, new mode, why): what report_changes() prints."""
         self.state_sender = P.Sender()
         self.truth_sender = P.Sender()
         self.publish_state = threading.Event()
@@ -138,18 +140,22 @@ class SimRobot:
 
     # --- physics ---------------------------------------------------------------------
     def _gains(self, now: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, P.CommandMode]:
-        """(q target, dq target, kp, kd, mode) to apply now."""
+        """(q target, dq target, kp, kd, mode) to apply now; self._why says why when it is not obvious."""
         with self._lock:
             cmd, arrival = self._cmd, self._cmd_arrival
         z = self._zeros
+        self._why = ""
         if cmd is None:
             if self.startup == "hold":
                 return self.hold_q, z, self.hold_kp, self.hold_kd, P.CommandMode.HOLD
+            self._why = "start-up"
             return self.hold_q, z, z, self.damp_kd, P.CommandMode.DAMPING
         if now - arrival > self.watchdog:
+            self._why = "no command for the watchdog time"
             return self.hold_q, z, z, self.damp_kd, P.CommandMode.DAMPING
         q = np.asarray(cmd.q)
         if cmd.mode == P.CommandMode.DAMPING:
+            self._why = "damping commanded"
             return q, z, z, np.asarray(cmd.kd), P.CommandMode.DAMPING
         dq = np.asarray(cmd.dq) if cmd.dq is not None else z
         return q, dq, np.asarray(cmd.kp), np.asarray(cmd.kd), P.CommandMode(cmd.mode)
@@ -162,7 +168,7 @@ class SimRobot:
         q_t, dq_t, kp, kd, mode = self._gains(now)
         if mode != self.mode:
             self.mode = mode
-            self.mode_changes.append((now, mode))
+            self.mode_changes.append((now, mode, self._why))
         q, dq = d.qpos[self.qadr], d.qvel[self.dadr]
         tau = kp * (q_t - q) + kd * (dq_t - dq)
         d.ctrl[self.act] = np.clip(tau, -self.tau_limit, self.tau_limit)
@@ -207,6 +213,14 @@ class SimRobot:
         self._running = False
         if self._thread is not None:
             self._thread.join(timeout=2.0)
+
+    def report_changes(self, seen: int, prog: str) -> int:
+        """Print the mode changes after the first `seen` ones; returns the new count."""
+        changes = list(self.mode_changes)
+        for k in range(max(seen, 1), len(changes)):
+            why = f" ({changes[k][2]})" if changes[k][2] else ""
+            print(f"{prog}: {changes[k - 1][1].name} -> {changes[k][1].name}{why}", flush=True)
+        return len(changes)
 
     def trunk_height(self) -> float:
         return float(self.data.qpos[2])
@@ -260,17 +274,14 @@ def main(argv: list[str] | None = None) -> int:
     ).start()
     r = zr.robot
     print(f"sim_robot: {args.robot}, physics {1 / r.dt:.0f} Hz, state {1 / (r.dt * r.decimation):.0f} Hz", flush=True)
+    seen = 0
     try:
         t0 = time.monotonic()
         t_end = t0 + args.duration if args.duration > 0 else float("inf")
-        seen, next_summary, last_cmds = 0, t0 + args.summary_every, 0
+        next_summary, last_cmds = t0 + args.summary_every, 0
         while time.monotonic() < t_end:
             time.sleep(min(0.2, max(0.0, t_end - time.monotonic())))
-            changes = list(r.mode_changes)
-            for k in range(max(seen, 1), len(changes)):
-                why = " (no command for the watchdog time)" if changes[k][1] == P.CommandMode.DAMPING else ""
-                print(f"sim_robot: {changes[k - 1][1].name} -> {changes[k][1].name}{why}", flush=True)
-            seen = len(changes)
+            seen = r.report_changes(seen, "sim_robot")
             if args.summary_every > 0 and time.monotonic() >= next_summary:
                 rate = (r.commands_received - last_cmds) / args.summary_every
                 last_cmds, next_summary = r.commands_received, next_summary + args.summary_every
@@ -285,6 +296,7 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         zr.stop()
         session.close()
+        r.report_changes(seen, "sim_robot")
     print(
         f"sim_robot: {r.steps} steps ({r.steps * r.dt:.1f} s), commands {r.commands_received}, "
         f"rejected {r.rejected}, overruns {r.overruns}, mode {r.mode.name}, "
