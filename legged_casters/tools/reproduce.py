@@ -90,7 +90,10 @@ def run_policy(
     _, spec, env_cfg, policy, _, _ = evaluate.load_exported(_shipped(task), task)
     scenario = evaluate.Scenario("reproduce", ((0.0, (0.0, 0.0, 0.0)),), duration, 0.0)
     cfg = evaluate.eval_env_cfg(env_cfg, (scenario,))
-    env = spec.env_class(common.with_overrides(cfg, overrides or {}, "reproduce"))
+    # A standing start at the origin, whatever the policy was trained with (a policy
+    # trained on a course carries terrain.spawn_on_course in its env config).
+    overrides = {"terrain.spawn_on_course": False, **(overrides or {})}
+    env = spec.env_class(common.with_overrides(cfg, overrides, "reproduce"))
     try:
         env.set_commands(torch.zeros(1, 3))
         if mode_at is not None:
