@@ -930,6 +930,21 @@ def test_a_port_in_use_is_named_not_a_zenoh_traceback():
     assert out.returncode == 2 and "the port is already in use" in out.stderr and "Traceback" not in out.stderr
 
 
+def test_round_trip_latency_matches_commands_to_their_state():
+    rt = P.RoundTrip(keep=4)
+    assert rt.summary() == "latency -"
+    for seq in range(6):
+        rt.sent(seq, 10.0 + seq)
+    rt.answered(5, 15.002)  # the command computed from state 5, 2 ms later
+    rt.answered(5, 15.1)  # a second command for the same state is not a new sample
+    rt.answered(0xFFFFFFFF, 16.0)  # a timed damping command answers no state
+    rt.answered(0, 16.0)  # state 0 was dropped from the bounded table
+    assert rt.take() == [pytest.approx(0.002)]
+    rt.sent(7, 1.0)
+    rt.answered(7, 1.004)
+    assert rt.summary() == "latency p50 4.0 / p99 4.0 ms" and rt.take() == []
+
+
 def test_live_status_lines(tmp_path, capsys):
     """The bridge prints each state change with its fault and a one-line summary; teleop
     says when no bridge is known to have received its messages."""

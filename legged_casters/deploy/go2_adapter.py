@@ -83,8 +83,7 @@ class Go2Adapter:
         self.commands_received = 0
         self.lowcmds_written = 0
         self.last_written: tuple[np.ndarray, ...] | None = None
-        self._sent_at: dict[int, float] = {}  # state seq -> when it was published
-        self.latencies: list[float] = []  # s, state published -> the command computed from it received
+        self.round_trip = P.RoundTrip()
         self._running = False
         self._thread: threading.Thread | None = None
 
@@ -103,11 +102,7 @@ class Go2Adapter:
         if count % self.state_every:
             return
         h = self.state_sender.next_header()
-        with self._lock:
-            self._sent_at[h.seq] = time.monotonic()
-            if len(self._sent_at) > 2000:
-                for old in list(self._sent_at)[:1000]:
-                    del self._sent_at[old]
+        self.round_trip.sent(h.seq, time.monotonic())
         msg = P.RobotState(
             quat=quat.tolist(), gyro=gyro.tolist(), q=q.tolist(), dq=dq.tolist(), robot_mode=self.mode, header=h
         )
@@ -124,17 +119,10 @@ class Go2Adapter:
                 self.cmd_filter.check(msg.header)
                 self._cmd, self._cmd_arrival = msg, now
                 self.commands_received += 1
-                sent = self._sent_at.pop(msg.state_seq, None)
-                if sent is not None:
-                    self.latencies.append(now - sent)
+            self.round_trip.answered(msg.state_seq, now)
         except P.ProtocolError as e:
             with self._lock:
                 self.rejected[e.reason] += 1
-
-    def take_latencies(self) -> list[float]:
-        with self._lock:
-            out, self.latencies = self.latencies, []
-        return out
 
     def targets(self, now: float) -> tuple[P.CommandMode, str, tuple[np.ndarray, ...] | None]:
         """(mode, reason, (q, dq, kp, kd)) to write now; None: write nothing."""
@@ -289,16 +277,10 @@ def main(argv: list[str] | None = None) -> int:
                 rates = [(x - y) / args.summary_every for x, y in zip(now, last, strict=True)]
                 last, next_summary = now, next_summary + args.summary_every
                 rejected = {k: v for k, v in a.rejected.items() if v}
-                lat = np.asarray(a.take_latencies()) * 1e3
-                latency = (
-                    f"latency p50 {np.percentile(lat, 50):.1f} / p99 {np.percentile(lat, 99):.1f} ms"
-                    if lat.size
-                    else "latency -"
-                )
                 line = (
                     f"go2_adapter: {a.mode.name}, LowState {rates[0]:.0f}/s, commands {rates[1]:.1f}/s, "
                     f"LowCmd {rates[2]:.0f}/s{' (dry run, not sent)' if args.dry_run else ''}, "
-                    f"{latency}, bad LowState {a.bad_lowstates}, rejected {rejected or 'none'}"
+                    f"{a.round_trip.summary()}, bad LowState {a.bad_lowstates}, rejected {rejected or 'none'}"
                 )
                 if args.dry_run and a.last_written is not None:
                     q, _, kp, kd = a.last_written

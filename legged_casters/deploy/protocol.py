@@ -501,6 +501,47 @@ class Sender:
         return h
 
 
+class RoundTrip:
+    """Robot side: the time from publishing a state to receiving the command computed
+    from it (matched by the command's `state_seq`). Thread-safe."""
+
+    def __init__(self, keep: int = 2000):
+        import threading
+
+        self._lock = threading.Lock()
+        self._sent: dict[int, float] = {}
+        self._keep = keep
+        self._samples: list[float] = []
+
+    def sent(self, seq: int, t: float) -> None:
+        with self._lock:
+            self._sent[seq] = t
+            if len(self._sent) > self._keep:
+                for old in list(self._sent)[: self._keep // 2]:
+                    del self._sent[old]
+
+    def answered(self, state_seq: int, t: float) -> None:
+        with self._lock:
+            sent = self._sent.pop(state_seq, None)
+            if sent is not None:
+                self._samples.append(t - sent)
+
+    def take(self) -> list[float]:
+        """The round trips (s) since the last call."""
+        with self._lock:
+            out, self._samples = self._samples, []
+        return out
+
+    def summary(self) -> str:
+        """'latency p50 X / p99 Y ms' over the round trips since the last call."""
+        lat = [1e3 * x for x in self.take()]
+        if not lat:
+            return "latency -"
+        lat.sort()
+        pick = lambda q: lat[min(len(lat) - 1, int(q * len(lat)))]  # noqa: E731
+        return f"latency p50 {pick(0.5):.1f} / p99 {pick(0.99):.1f} ms"
+
+
 def keys(namespace: str) -> dict[str, str]:
     """The zenoh key expressions of a robot namespace."""
     ns = namespace.strip("/")

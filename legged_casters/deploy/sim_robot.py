@@ -113,6 +113,7 @@ class SimRobot:
         self.truth_sender = P.Sender()
         self.publish_state = threading.Event()
         self.publish_state.set()
+        self.round_trip = P.RoundTrip()
         self.steps = 0
         self.overruns = 0
         self._running = False
@@ -127,6 +128,7 @@ class SimRobot:
                 raise P.ProtocolError("malformed", f"command for {len(msg.q)} joints, this robot has {self.n}")
             with self._lock:
                 self.cmd_filter.check(msg.header)
+            self.round_trip.answered(msg.state_seq, now)
             self.accept(msg, now)
         except P.ProtocolError as e:
             with self._lock:
@@ -182,6 +184,7 @@ class SimRobot:
         msg = P.RobotState(
             quat=s[self._quat], gyro=s[self._gyro], q=s[self._qs], dq=s[self._dqs], robot_mode=self.mode, header=h
         )
+        self.round_trip.sent(h.seq, time.monotonic())
         self.publish("state", msg.encode())
         th = self.truth_sender.next_header()
         th.stamp_ns = stamp_ns
@@ -287,8 +290,9 @@ def main(argv: list[str] | None = None) -> int:
                 last_cmds, next_summary = r.commands_received, next_summary + args.summary_every
                 rejected = {k: v for k, v in r.rejected.items() if v}
                 print(
-                    f"sim_robot: {r.mode.name}, commands {rate:.1f}/s, sim time {r.steps * r.dt:.1f} s, "
-                    f"overruns {r.overruns}, trunk z {r.data.qpos[2]:.2f} m, rejected {rejected or 'none'}",
+                    f"sim_robot: {r.mode.name}, commands {rate:.1f}/s, {r.round_trip.summary()}, "
+                    f"sim time {r.steps * r.dt:.1f} s, overruns {r.overruns}, trunk z {r.data.qpos[2]:.2f} m, "
+                    f"rejected {rejected or 'none'}",
                     flush=True,
                 )
     except KeyboardInterrupt:
