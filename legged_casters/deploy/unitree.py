@@ -22,10 +22,12 @@ What lives here:
 
 from __future__ import annotations
 
+import importlib.util
 import struct
 import sys
 import types
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -79,12 +81,10 @@ def load_sdk() -> Sdk:
     except ImportError as err:
         raise SdkUnavailable(f"CycloneDDS for Python is not installed ({err}); {INSTALL_HINT}") from None
     if "unitree_sdk2py.b2" not in sys.modules:
-        import importlib.util
-
         spec = importlib.util.find_spec("unitree_sdk2py")
         if spec is None:
             raise SdkUnavailable(f"unitree_sdk2py is not installed; {INSTALL_HINT}")
-        b2 = [p for p in spec.submodule_search_locations or [] if (__import__("pathlib").Path(p) / "b2").is_dir()]
+        b2 = [p for p in spec.submodule_search_locations or [] if (Path(p) / "b2").is_dir()]
         if not b2:  # the 1.0.1 wheel: its __init__ imports a b2 package it does not contain
             sys.modules["unitree_sdk2py.b2"] = types.ModuleType("unitree_sdk2py.b2")
     try:
