@@ -78,3 +78,19 @@ def test_robots_spawn_on_the_course_at_the_right_height_and_evaluation_is_flat()
     spec = registry.get_task("go2_wheel_flat")
     flat = evaluate.eval_env_cfg(reproduce.common.with_overrides(spec.env_cfg, cfg, "t"), evaluate.QUICK[:1])
     assert flat.terrain.segments == []
+
+
+def test_a_trace_keeps_every_step_and_starts_at_the_origin():
+    """Each recorded step is its own copy (the sim reuses its state buffers: Fig. 7's frames
+    were once all the last step), and a run starts standing at the origin even for a
+    policy whose training config spawned robots along a course."""
+    tr = reproduce.run_policy(
+        "caster_omni",
+        1.0,
+        lambda t, env: (0.5, 0.0, 0.0),
+        overrides={"terrain.segments": [[10.0, 3.0]], "terrain.start_x": 2.0, "terrain.spawn_on_course": True},
+    )
+    qpos = tr.extra["qpos"]
+    assert len(qpos) == len(tr.t) and not np.allclose(qpos[0], qpos[-1])
+    np.testing.assert_allclose(qpos[:, 0], tr.pos[:, 0], atol=1e-5)
+    assert abs(tr.pos[0, 0]) < 0.05 and abs(tr.pos[0, 1]) < 0.05

@@ -249,7 +249,7 @@ class CasterOmniEnv(LeggedEnv):
         return {
             "kind": "gait",
             "cfg": dict(vars(self.cfg.gait)),
-            "slices": {k: slices[k] for k in ("commands", "mode_mask", "gait_phase")},
+            "slices": {k: slices[k] for k in ("commands", "mode_mask", "gait_phase", "projected_gravity")},
             "action_scale": self.cfg.control.action_scale,
         }
 
@@ -257,7 +257,9 @@ class CasterOmniEnv(LeggedEnv):
         """The prior's joint-target offsets (num_envs, 12), rad (zero when it is off)."""
         if not self.cfg.gait.enabled:
             return torch.zeros(self.num_envs, self.num_actions, device=self.device)
-        return gait_prior(self.cfg.gait, self.commands, self.mode_mask, torch.sin(self.gait_phase))
+        return gait_prior(
+            self.cfg.gait, self.commands, self.mode_mask, torch.sin(self.gait_phase), self.projected_gravity
+        )
 
     def _post_physics_step(self) -> None:
         super()._post_physics_step()

@@ -15,6 +15,11 @@ deployed policy can compute it from what it observes:
   foot velocity's x part, the thighs swing front and rear legs in antiphase for its
   y part. Casters masked by the propulsion mode do not oscillate.
 * Both fade in with the foot's commanded speed (zero command: the nominal pose).
+* Uphill effort (`uphill_gain`, off by default): the oscillation amplitude grows with
+  the grade the trunk stands on along the commanded direction, read from the
+  projected gravity (an IMU quantity the actor observes), because the push a caster
+  makes grows with its deflection (Fig. 3) and a climb needs more push at the same
+  speed. Downhill and across-slope it stays as on the flat.
 
 The actor adds this prior to its MLP output (`legged_casters.models.PriorMLPModel`,
 in action units); the env applies actions as they come. The export wraps both into
@@ -51,6 +56,11 @@ class GaitPriorCfg:
     """Foot speed (m/s) at which tilt and amplitude reach their full values (linear ramp)."""
     lateral_gain: float = field(default=1.0, metadata={"min": 0.0})
     """Scale of the lateral (y) tilt relative to the pitch tilt."""
+    uphill_gain: float = field(default=0.0, metadata={"min": 0.0})
+    """Extra oscillation amplitude (rad) per unit of uphill grade (sine of the slope
+    along the commanded direction, from the projected gravity); 0: off."""
+    max_amplitude: float = field(default=0.6, metadata={"min": 0.0})
+    """Cap on the oscillation amplitude (rad) with the uphill term."""
 
 
 FOOT_XY = torch.tensor(
@@ -77,6 +87,9 @@ def _prior(
     thigh_share: float,
     full_speed: float,
     lateral_gain: float,
+    gravity: torch.Tensor,
+    uphill_gain: float,
+    max_amplitude: float,
 ) -> torch.Tensor:
     # Each foot's commanded planar velocity v + w x r (trunk frame), (n, 4) per axis.
     vx = commands[:, 0:1] - commands[:, 2:3] * foot_xy[:, 1]
@@ -86,35 +99,60 @@ def _prior(
     ux, uy = vx / speed.clamp(min=1e-6), vy / speed.clamp(min=1e-6)
     tilt_x = tilt * ramp * ux
     tilt_y = tilt * lateral_gain * ramp * uy
-    wave = sin_phase.unsqueeze(1) * amplitude * ramp * (1.0 - mask)
+    amp = torch.full_like(sin_phase, amplitude)
+    if uphill_gain > 0.0:
+        # the trunk's uphill grade along the commanded planar direction: gravity (trunk
+        # frame) pulls backwards against the command when climbing
+        cmd_speed = torch.sqrt(commands[:, 0] ** 2 + commands[:, 1] ** 2 + 1e-12)
+        along = (gravity[:, 0] * commands[:, 0] + gravity[:, 1] * commands[:, 1]) / cmd_speed.clamp(min=1e-6)
+        amp = (amp + uphill_gain * (-along).clamp(min=0.0)).clamp(max=max(max_amplitude, amplitude))
+    wave = (sin_phase * amp).unsqueeze(1) * ramp * (1.0 - mask)
     hip = -tilt_y + side * wave * ux.abs()
     thigh = thigh_share * tilt_x - front * wave * uy.abs()
     calf = (1.0 - thigh_share) * tilt_x
     return torch.stack([hip, thigh, calf], dim=-1).reshape(-1, 12)
 
 
-def gait_prior(cfg: GaitPriorCfg, commands: torch.Tensor, mask: torch.Tensor, sin_phase: torch.Tensor) -> torch.Tensor:
+def gait_prior(
+    cfg: GaitPriorCfg,
+    commands: torch.Tensor,
+    mask: torch.Tensor,
+    sin_phase: torch.Tensor,
+    gravity: torch.Tensor | None = None,
+) -> torch.Tensor:
     """Joint-target offsets (n, 12) in rad, go2.ACTUATED_JOINTS order.
 
     commands (n, 3): vx, vy (m/s), wz (rad/s) in the trunk frame; mask (n, 4): 1 = that
-    caster must not oscillate; sin_phase (n,): sine of the clock phase."""
+    caster must not oscillate; sin_phase (n,): sine of the clock phase; gravity (n, 3):
+    the projected gravity (unit, trunk frame), needed when cfg.uphill_gain > 0."""
     dev = commands.device
+    if gravity is None:
+        if cfg.uphill_gain > 0.0:
+            raise ValueError("gait.uphill_gain needs the projected gravity")
+        gravity = torch.zeros(commands.shape[0], 3, device=dev)
     return _prior(
         commands, mask, sin_phase, FOOT_XY.to(dev), _SIDE.to(dev), _FRONT.to(dev),
         cfg.tilt, cfg.amplitude, cfg.thigh_share, cfg.full_speed, cfg.lateral_gain,
+        gravity, cfg.uphill_gain, cfg.max_amplitude,
     )  # fmt: skip
 
 
 class GaitPrior(torch.nn.Module):
     """The prior inside the actor: raw policy observation (n, dim) -> prior action
     (n, 12) in action units. `slices` gives (start, scale) of the observation terms
-    commands, mode_mask and gait_phase (the layout is the env's). Scriptable."""
+    commands, mode_mask and gait_phase, and projected_gravity for the uphill term (the
+    layout is the env's). Scriptable."""
 
     def __init__(self, cfg: dict, slices: dict[str, list[float]], action_scale: float):
         super().__init__()
         c = GaitPriorCfg(**cfg)
         self.tilt, self.amplitude, self.thigh_share = float(c.tilt), float(c.amplitude), float(c.thigh_share)
         self.full_speed, self.lateral_gain = float(c.full_speed), float(c.lateral_gain)
+        self.uphill_gain, self.max_amplitude = float(c.uphill_gain), float(c.max_amplitude)
+        if self.uphill_gain > 0.0 and "projected_gravity" not in slices:
+            raise ValueError("a gait prior with uphill_gain needs the projected_gravity observation slice")
+        grav = slices.get("projected_gravity", [0, 1.0])
+        self.grav_start, self.grav_scale = int(grav[0]), float(grav[1])
         self.cmd_start, self.cmd_scale = int(slices["commands"][0]), float(slices["commands"][1])
         self.mask_start, self.mask_scale = int(slices["mode_mask"][0]), float(slices["mode_mask"][1])
         self.phase_start, self.phase_scale = int(slices["gait_phase"][0]), float(slices["gait_phase"][1])
@@ -127,9 +165,11 @@ class GaitPrior(torch.nn.Module):
         commands = obs[:, self.cmd_start : self.cmd_start + 3] / self.cmd_scale
         mask = obs[:, self.mask_start : self.mask_start + 4] / self.mask_scale
         sin_phase = obs[:, self.phase_start] / self.phase_scale
+        gravity = obs[:, self.grav_start : self.grav_start + 3] / self.grav_scale
         offsets = _prior(
             commands, mask, sin_phase, self.foot_xy, self.side, self.front,
             self.tilt, self.amplitude, self.thigh_share, self.full_speed, self.lateral_gain,
+            gravity, self.uphill_gain, self.max_amplitude,
         )  # fmt: skip
         return offsets / self.action_scale
 

@@ -92,7 +92,7 @@ def run_policy(
     cfg = evaluate.eval_env_cfg(env_cfg, (scenario,))
     # A standing start at the origin, whatever the policy was trained with (a policy
     # trained on a course carries terrain.spawn_on_course in its env config).
-    overrides = {"terrain.spawn_on_course": False, **(overrides or {})}
+    overrides = {**(overrides or {}), "terrain.spawn_on_course": False}
     env = spec.env_class(common.with_overrides(cfg, overrides, "reproduce"))
     try:
         env.set_commands(torch.zeros(1, 3))
@@ -126,7 +126,7 @@ def run_policy(
             log["power"].append(float(env.positive_power()[0]))
             log["fell"].append(fallen)
             extra.setdefault("joint_pos", []).append(env.joint_pos[0].cpu().numpy())
-            extra.setdefault("qpos", []).append(env.sim.qpos[0].cpu().double().numpy())
+            extra.setdefault("qpos", []).append(np.array(env.sim.qpos[0].cpu(), dtype=np.float64))  # a copy: the sim reuses its buffer
             if kin is not None:
                 extra.setdefault("base_vel", []).append(_site_velocities(env, kin, bases))
             extra.setdefault("yaw", []).append(float(yaw_from_quat(env.base_quat)[0]))
