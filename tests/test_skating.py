@@ -55,6 +55,31 @@ def test_prior_oscillates_only_the_driving_casters_and_splays_across_the_motion(
     assert side[:, 1].tolist() == pytest.approx([-0.2, -0.2, 0.2, 0.2])  # thighs: front/rear antiphase
 
 
+def test_uphill_term_raises_the_oscillation_only_when_climbing():
+    """Amplitude + gain * (grade - deadband) where the trunk stands uphill along the command
+    (gravity in the trunk frame pulls against it), capped; unchanged on the flat, downhill
+    and without gravity when the term is off."""
+    cfg = GaitPriorCfg(enabled=True, amplitude=0.2, full_speed=0.5, uphill_gain=5.0, uphill_deadband=0.02,
+                       max_amplitude=0.4)  # fmt: skip
+
+    def hip_wave(cmd, grade):
+        g = torch.tensor([[-grade, 0.0, -1.0]])  # nose-up by `grade` (sine) along +x
+        args = torch.tensor([cmd]), torch.zeros(1, 4)
+        return float((gait_prior(cfg, *args, torch.ones(1), g) - gait_prior(cfg, *args, torch.zeros(1), g))[0, 0])
+
+    assert hip_wave((0.5, 0, 0), 0.0) == pytest.approx(0.2)
+    assert hip_wave((0.5, 0, 0), 0.02) == pytest.approx(0.2)  # inside the deadband
+    assert hip_wave((0.5, 0, 0), 0.05) == pytest.approx(0.2 + 5.0 * 0.03)
+    assert hip_wave((0.5, 0, 0), 0.5) == pytest.approx(0.4)  # capped
+    assert hip_wave((-0.5, 0, 0), 0.05) == pytest.approx(0.2)  # backwards down the same slope
+    with pytest.raises(ValueError, match="projected gravity"):
+        gait_prior(cfg, torch.zeros(1, 3), torch.zeros(1, 4), torch.ones(1))
+    tilted = gait_prior(
+        CFG, torch.tensor([[0.5, 0, 0]]), torch.zeros(1, 4), torch.ones(1), torch.tensor([[-0.3, 0, -1]])
+    )
+    assert torch.equal(_prior((0.5, 0, 0)), tilted.view(4, 3))  # the term off: gravity changes nothing
+
+
 @pytest.fixture(scope="module")
 def env():
     e = registry.make_env(TASK, CPU, num_envs=3)
@@ -83,16 +108,25 @@ def test_clock_phase_advances_with_policy_steps_and_restarts_with_the_episode(en
     assert env.compute_observations()["policy"][1, sl].tolist() == pytest.approx([0.0, 1.0])
 
 
-def test_the_actor_computes_the_same_prior_from_its_observation(env):
-    env.set_commands(torch.tensor([[0.7, -0.2, 0.4], [0.0, 0.4, 0.0], [-0.5, 0.0, -0.8]]))
-    env.set_mode("front_wheel", torch.tensor([2]))
-    for _ in range(7):
-        obs, *_ = env.step(torch.zeros(3, 12))
-    p = env.actor_prior()
-    prior = GaitPrior(p["cfg"], p["slices"], p["action_scale"])
-    expect = env.gait_offsets() / env.cfg.control.action_scale
-    assert torch.allclose(prior(obs["policy"]), expect, atol=1e-6)
-    assert torch.jit.script(prior)(obs["policy"]).sub(expect).abs().max() < 1e-6
+@pytest.mark.parametrize("uphill", [False, True])
+def test_the_actor_computes_the_same_prior_from_its_observation(env, uphill):
+    # The actor reads the (noisy) observation, the env its own state: compare without noise.
+    env.cfg.gait.uphill_gain, env.cfg.gait.uphill_deadband = (8.0, 0.0) if uphill else (0.0, 0.06)
+    noise = env.noise_vec.clone()
+    env.noise_vec.zero_()
+    try:
+        env.set_commands(torch.tensor([[0.7, -0.2, 0.4], [0.0, 0.4, 0.0], [-0.5, 0.0, -0.8]]))
+        env.set_mode("front_wheel", torch.tensor([2]))
+        for _ in range(7):
+            obs, *_ = env.step(torch.zeros(3, 12))
+        p = env.actor_prior()
+        prior = GaitPrior(p["cfg"], p["slices"], p["action_scale"])
+        expect = env.gait_offsets() / env.cfg.control.action_scale
+        assert torch.allclose(prior(obs["policy"]), expect, atol=1e-5)
+        assert torch.jit.script(prior)(obs["policy"]).sub(expect).abs().max() < 1e-5
+    finally:
+        env.cfg.gait.uphill_gain, env.cfg.gait.uphill_deadband = 0.0, 0.06
+        env.noise_vec.copy_(noise)
 
 
 def test_ppo_learns_a_residual_around_the_prior(tmp_path):

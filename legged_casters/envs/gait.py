@@ -58,7 +58,12 @@ class GaitPriorCfg:
     """Scale of the lateral (y) tilt relative to the pitch tilt."""
     uphill_gain: float = field(default=0.0, metadata={"min": 0.0})
     """Extra oscillation amplitude (rad) per unit of uphill grade (sine of the slope
-    along the commanded direction, from the projected gravity); 0: off."""
+    along the commanded direction, from the projected gravity); 0: off. The policy
+    observation's training noise on projected_gravity (+-0.05 by default, as large as a
+    3 deg grade) passes through this term at this gain: lower it with the term on."""
+    uphill_deadband: float = field(default=0.06, metadata={"min": 0.0})
+    """Grade (sine) not counted: the trunk of the caster_omni policy pitches 0.044 +- 0.022
+    nose-up when it skates on the flat (3 deg of slope add about 0.065)."""
     max_amplitude: float = field(default=0.6, metadata={"min": 0.0})
     """Cap on the oscillation amplitude (rad) with the uphill term."""
 
@@ -89,6 +94,7 @@ def _prior(
     lateral_gain: float,
     gravity: torch.Tensor,
     uphill_gain: float,
+    uphill_deadband: float,
     max_amplitude: float,
 ) -> torch.Tensor:
     # Each foot's commanded planar velocity v + w x r (trunk frame), (n, 4) per axis.
@@ -105,7 +111,7 @@ def _prior(
         # frame) pulls backwards against the command when climbing
         cmd_speed = torch.sqrt(commands[:, 0] ** 2 + commands[:, 1] ** 2 + 1e-12)
         along = (gravity[:, 0] * commands[:, 0] + gravity[:, 1] * commands[:, 1]) / cmd_speed.clamp(min=1e-6)
-        amp = (amp + uphill_gain * (-along).clamp(min=0.0)).clamp(max=max(max_amplitude, amplitude))
+        amp = (amp + uphill_gain * (-along - uphill_deadband).clamp(min=0.0)).clamp(max=max(max_amplitude, amplitude))
     wave = (sin_phase * amp).unsqueeze(1) * ramp * (1.0 - mask)
     hip = -tilt_y + side * wave * ux.abs()
     thigh = thigh_share * tilt_x - front * wave * uy.abs()
@@ -133,7 +139,7 @@ def gait_prior(
     return _prior(
         commands, mask, sin_phase, FOOT_XY.to(dev), _SIDE.to(dev), _FRONT.to(dev),
         cfg.tilt, cfg.amplitude, cfg.thigh_share, cfg.full_speed, cfg.lateral_gain,
-        gravity, cfg.uphill_gain, cfg.max_amplitude,
+        gravity, cfg.uphill_gain, cfg.uphill_deadband, cfg.max_amplitude,
     )  # fmt: skip
 
 
@@ -149,6 +155,7 @@ class GaitPrior(torch.nn.Module):
         self.tilt, self.amplitude, self.thigh_share = float(c.tilt), float(c.amplitude), float(c.thigh_share)
         self.full_speed, self.lateral_gain = float(c.full_speed), float(c.lateral_gain)
         self.uphill_gain, self.max_amplitude = float(c.uphill_gain), float(c.max_amplitude)
+        self.uphill_deadband = float(c.uphill_deadband)
         if self.uphill_gain > 0.0 and "projected_gravity" not in slices:
             raise ValueError("a gait prior with uphill_gain needs the projected_gravity observation slice")
         grav = slices.get("projected_gravity", [0, 1.0])
@@ -169,7 +176,7 @@ class GaitPrior(torch.nn.Module):
         offsets = _prior(
             commands, mask, sin_phase, self.foot_xy, self.side, self.front,
             self.tilt, self.amplitude, self.thigh_share, self.full_speed, self.lateral_gain,
-            gravity, self.uphill_gain, self.max_amplitude,
+            gravity, self.uphill_gain, self.uphill_deadband, self.max_amplitude,
         )  # fmt: skip
         return offsets / self.action_scale
 

@@ -126,7 +126,9 @@ def run_policy(
             log["power"].append(float(env.positive_power()[0]))
             log["fell"].append(fallen)
             extra.setdefault("joint_pos", []).append(env.joint_pos[0].cpu().numpy())
-            extra.setdefault("qpos", []).append(np.array(env.sim.qpos[0].cpu(), dtype=np.float64))  # a copy: the sim reuses its buffer
+            extra.setdefault("qpos", []).append(
+                np.array(env.sim.qpos[0].cpu(), dtype=np.float64)
+            )  # a copy: the sim reuses its buffer
             if kin is not None:
                 extra.setdefault("base_vel", []).append(_site_velocities(env, kin, bases))
             extra.setdefault("yaw", []).append(float(yaw_from_quat(env.base_quat)[0]))
