@@ -7,6 +7,7 @@ import contextlib
 import io
 import os
 import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -550,3 +551,23 @@ def test_play_of_a_runs_export_writes_next_to_the_run_not_into_the_export(run, t
         assert play.main(argv) == 0
     assert sorted(p.name for p in (copy / "exported").iterdir()) == before
     assert (copy / "play" / "policy_steps_data.npz").is_file()
+
+
+def test_kill_stops_training_like_ctrl_c(tmp_path):
+    """SIGTERM (and SIGINT to a process started in the background, which would otherwise
+    ignore it) ends training with the newest checkpoint and the command that continues."""
+    argv = [sys.executable, "train.py", "--task", TASK, "--num_envs", str(NUM_ENVS), "--sim_backend", "cpu",
+            "--log_root", str(tmp_path), "--max_iterations", "200", "--console", "line", *SMALL]  # fmt: skip
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        # started as a shell script's `train.py &` would be: SIGINT ignored
+        proc = subprocess.Popen(argv, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))  # fmt: skip
+        lines = []
+        for line in proc.stdout:
+            lines.append(line)
+            if " it 2/200" in line:
+                break
+        proc.send_signal(sig)
+        out = "".join(lines) + proc.stdout.read()
+        assert proc.wait(60) == 130, out[-2000:]
+        assert "interrupted; newest checkpoint" in out and "--resume --load_run" in out

@@ -16,8 +16,10 @@ import io
 import math
 import os
 import re
+import signal
 import statistics
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -197,6 +199,19 @@ def _budget_reached(runner: CheckpointingRunner, started: float, max_seconds: fl
         torch.distributed.broadcast(flag, src=0)
         stop = bool(flag.item())
     return stop
+
+
+def _stop_on_signals() -> None:
+    """Ctrl-C, `kill -INT` and `kill` (SIGTERM) all stop training the same way: the
+    newest checkpoint is named with the command that continues from it. (A process a
+    script starts in the background ignores SIGINT unless it says otherwise.)"""
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGTERM, interrupt)
 
 
 def _progress_hook(
@@ -392,6 +407,7 @@ def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Pa
             evaluator = DeterministicEval(spec, env_cfg)
         budget = args.max_minutes * 60.0 if args.max_minutes is not None else None
         _progress_hook(runner, args.console, task, evaluator, args.eval_every, budget)
+        _stop_on_signals()
         try:
             runner.learn(num_learning_iterations=train_cfg.max_iterations, init_at_random_ep_len=True)
         except BudgetReached as stop:
