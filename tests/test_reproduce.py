@@ -94,3 +94,19 @@ def test_a_trace_keeps_every_step_and_starts_at_the_origin():
     assert len(qpos) == len(tr.t) and not np.allclose(qpos[0], qpos[-1])
     np.testing.assert_allclose(qpos[:, 0], tr.pos[:, 0], atol=1e-5)
     assert abs(tr.pos[0, 0]) < 0.05 and abs(tr.pos[0, 1]) < 0.05
+
+
+def test_path_follower_says_stalled_only_without_progress():
+    import torch
+
+    path = np.c_[np.arange(0.0, 100.0, 0.25), np.zeros(400)]
+    f = reproduce.PathFollower(path, 1.0)
+    env = type("Env", (), {})()
+    env.base_quat = torch.tensor([[1.0, 0.0, 0.0, 0.0]])
+    for k in range(100):  # 0.5 m/s for 100 s: slow, never stalled
+        env.base_pos = torch.tensor([[0.5 * k, 0.0, 0.4]])
+        f(float(k), env)
+        assert not f.stalled()
+    for k in range(100, 170):  # then stuck at 49.5 m
+        f(float(k), env)
+    assert f.stalled() and not f.done

@@ -482,6 +482,8 @@ def table2(out: Path, quick: bool) -> Result:
 
 
 POLE_SPACING = 1.8  # m, the paper's slalom
+STALL_S = 60.0
+"""A path run ends when the robot has made less than 1 m of progress in this long."""
 
 
 class PathFollower:
@@ -496,6 +498,7 @@ class PathFollower:
         self.s = np.r_[0.0, np.cumsum(np.linalg.norm(seg, axis=1))]
         self.speed, self.lookahead, self.gain = speed, lookahead, gain
         self.progress = 0.0
+        self._marks: list[tuple[float, float]] = []  # (t, progress), one per second
 
     def at(self, s: float) -> np.ndarray:
         s = min(max(s, 0.0), self.s[-1])
@@ -507,6 +510,8 @@ class PathFollower:
         idx = np.nonzero(window)[0]
         near = idx[np.argmin(np.linalg.norm(self.points[idx] - xy, axis=1))]
         self.progress = max(self.progress, float(self.s[near]))
+        if not self._marks or t - self._marks[-1][0] >= 1.0:
+            self._marks.append((t, self.progress))
         gx, gy = self.at(self.progress + self.lookahead)
         heading = math.atan2(gy - xy[1], gx - xy[0])
         yaw = float(yaw_from_quat(env.base_quat)[0])
@@ -516,6 +521,14 @@ class PathFollower:
     @property
     def done(self) -> bool:
         return self.progress >= self.s[-1] - self.lookahead
+
+    def stalled(self, seconds: float = STALL_S, metres: float = 1.0) -> bool:
+        """Less than `metres` of progress along the path in the last `seconds`."""
+        if not self._marks or self._marks[-1][0] < seconds:
+            return False
+        t_now, p_now = self._marks[-1]
+        past = [p for t, p in self._marks if t <= t_now - seconds]
+        return bool(past) and p_now - past[-1] < metres
 
 
 def trained_on(task: str) -> str:
@@ -657,7 +670,11 @@ def campus(out: Path, quick: bool) -> Result:
         if common.shipped_policy_dir(task) is None:
             continue
         follower = PathFollower(path, 1.0)
-        tr = run_policy(task, 1.5 * length + 20.0, follower, overrides=overrides, until=lambda env, f=follower: f.done)
+        # The run ends when the robot finishes, falls or stalls (STALL_S without progress):
+        # a slow robot is timed, not cut off. The cap only bounds a robot that creeps.
+        tr = run_policy(
+            task, 10.0 * length, follower, overrides=overrides, until=lambda env, f=follower: f.done or f.stalled()
+        )
         traces[robot] = tr
         step = np.r_[0.0, np.linalg.norm(np.diff(tr.pos[:, :2], axis=0), axis=1)]
         ground = course.height(tr.pos[:, 0])
@@ -674,7 +691,14 @@ def campus(out: Path, quick: bool) -> Result:
             parts.append(f"{kind} {cot:.3f}")
         total = step.sum()
         overall = tr.power.sum() * tr.dt / (weight * total) if total > 0 else math.nan
-        status = "fell" if tr.fell else ("finished" if follower.done else "did not finish in time")
+        if tr.fell:
+            status = "fell"
+        elif follower.done:
+            status = "finished"
+        elif follower.stalled():
+            status = f"stalled (under 1 m of progress in {STALL_S:.0f} s)"
+        else:
+            status = f"did not finish within {10.0 * length:.0f} s"
         rows.append(
             Row(
                 f"Table II course, {robot}",
