@@ -665,8 +665,8 @@ def campus(out: Path, quick: bool) -> Result:
         "terrain.width": 4 * radius + 4.0,
     }
     length = float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum())
-    rows, traces = [], {}
-    for _, task, robot, paper in ROBOTS:
+    rows, traces, cots = [], {}, {}
+    for flag, task, robot, paper in ROBOTS:
         if common.shipped_policy_dir(task) is None:
             continue
         follower = PathFollower(path, 1.0)
@@ -676,7 +676,11 @@ def campus(out: Path, quick: bool) -> Result:
             task, 10.0 * length, follower, overrides=overrides, until=lambda env, f=follower: f.done or f.stalled()
         )
         traces[robot] = tr
-        step = np.r_[0.0, np.linalg.norm(np.diff(tr.pos[:, :2], axis=0), axis=1)]
+        # Distance along the trunk's path averaged over 1 s: the casters' 2 Hz sideways sway
+        # (and a trot's bob) is not distance travelled and would lower the COT.
+        n = max(1, int(round(1.0 / tr.dt)))
+        xy = np.c_[_smooth_edges(tr.pos[:, 0], n), _smooth_edges(tr.pos[:, 1], n)]
+        step = np.r_[0.0, np.linalg.norm(np.diff(xy, axis=0), axis=1)]
         ground = course.height(tr.pos[:, 0])
         climb = np.r_[0.0, np.diff(ground)]
         grade = np.divide(climb, step, out=np.zeros_like(climb), where=step > 1e-6)
@@ -689,8 +693,13 @@ def campus(out: Path, quick: bool) -> Result:
             d = step[sel].sum()
             cot = tr.power[sel].sum() * tr.dt / (weight * d) if d > 0.5 else math.nan
             parts.append(f"{kind} {cot:.3f}")
-        total = step.sum()
-        overall = tr.power.sum() * tr.dt / (weight * total) if total > 0 else math.nan
+        total = step.sum()  # what the trunk travelled, detours included
+        done = min(follower.progress + (follower.lookahead if follower.done else 0.0), length)  # along the loop
+        # Overall COT per metre of the loop completed, so that a robot's detours (the casters
+        # run wide after a downhill) cost it rather than lower its COT.
+        overall = tr.power.sum() * tr.dt / (weight * done) if done > 0 else math.nan
+        if follower.done:
+            cots[flag] = (overall, paper)
         if tr.fell:
             status = "fell"
         elif follower.done:
@@ -703,13 +712,25 @@ def campus(out: Path, quick: bool) -> Result:
             Row(
                 f"Table II course, {robot}",
                 f"COT {paper} (their campus loop)",
-                f"COT {overall:.3f} overall ({', '.join(parts)}); {total:.0f} of {length:.0f} m in {tr.t[-1]:.0f} s "
-                f"({total / tr.t[-1]:.2f} m/s), {tr.power.mean():.1f} W, {status}",
+                f"COT {overall:.3f} per metre of loop ({', '.join(parts)} per metre travelled); {done:.0f} of "
+                f"{length:.0f} m of loop in {tr.t[-1]:.0f} s ({done / tr.t[-1]:.2f} m/s; trunk travelled "
+                f"{total:.0f} m), {tr.power.mean():.1f} W, {status}",
                 f"{task} shipped policy ({trained_on(task)}); {laps} lap(s) of a {length / laps:.0f} m loop "
                 f"crossing a hill ({segments[0][0]:.0f} m at {SLOPE_DEG:.0f} deg up, {segments[1][0]:.0f} m flat, "
                 f"{segments[2][0]:.0f} m down) twice per lap; pure pursuit at a 1.0 m/s command",
             )
         )
+    for other, name in (("point", "trot"), ("wheel", "driving wheels")):
+        if "caster" in cots and other in cots:
+            (ours, paper_c), (ref, paper_ref) = cots["caster"], cots[other]
+            rows.append(
+                Row(
+                    f"Table II course, casters vs {name}",
+                    f"{100 * (paper_c / paper_ref - 1):+.1f} % (Table II)",
+                    f"{100 * (ours / ref - 1):+.1f} %",
+                    "the runs above, COT per metre of loop (both finished)",
+                )
+            )
     plt = _plt()
     fig, axes = plt.subplots(2, 1, figsize=(7.5, 6.5))
     xs = np.linspace(-radius - 1.0, end + radius + 1.0, 400)
@@ -739,8 +760,21 @@ def campus(out: Path, quick: bool) -> Result:
             "A stretch counts as uphill or downhill by the grade the robot actually travels (so each ramp is "
             "climbed one way and descended the other). Segment COT counts positive joint work only (the paper's "
             "formula): downhill, gravity does much of the work and the number drops.",
+            "The overall COT divides the work by the metres of loop completed; the segment COTs by the metres the "
+            "trunk travelled in them (averaged over 1 s, so that the 2 Hz sway is not distance). A run ends when "
+            f"the robot finishes, falls, or makes under 1 m of progress in {STALL_S:.0f} s.",
+            "The caster policy climbs the 3 deg ramps at about 0.3 m/s (a 1.0 m/s command) and cannot brake "
+            "downhill: it rolls down at up to 3 m/s and runs wide at the bottom, hence its detours.",
         ],
     )
+
+
+def _smooth_edges(x: np.ndarray, n: int) -> np.ndarray:
+    """Moving average over n samples that shrinks its window at both ends (no zero padding)."""
+    n = max(1, min(n, len(x)))
+    total = np.convolve(x, np.ones(n), mode="same")
+    count = np.convolve(np.ones_like(x), np.ones(n), mode="same")
+    return total / count
 
 
 def _smooth(x: np.ndarray, n: int) -> np.ndarray:
