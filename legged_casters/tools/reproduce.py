@@ -126,9 +126,8 @@ def run_policy(
             log["power"].append(float(env.positive_power()[0]))
             log["fell"].append(fallen)
             extra.setdefault("joint_pos", []).append(env.joint_pos[0].cpu().numpy())
-            extra.setdefault("qpos", []).append(
-                np.array(env.sim.qpos[0].cpu(), dtype=np.float64)
-            )  # a copy: the sim reuses its buffer
+            # a copy: the sim reuses its float64 buffer, so a view would hold the last step
+            extra.setdefault("qpos", []).append(env.sim.qpos[0].cpu().numpy().astype(np.float64, copy=True))
             if kin is not None:
                 extra.setdefault("base_vel", []).append(_site_velocities(env, kin, bases))
             extra.setdefault("yaw", []).append(float(yaw_from_quat(env.base_quat)[0]))
