@@ -220,6 +220,11 @@ def test_full_loop_fake_go2_adapter_bridge(tmp_path):
     probe = LoopProbe(port, ns)
     states, truths, cmds, statuses, operate = probe.states, probe.truths, probe.cmds, probe.statuses, probe.operate
     adapter = bridge = None
+
+    def start_bridge():
+        return _spawn("bridge", "--policy", str(policy), "--connect", f"tcp/127.0.0.1:{port}", "--namespace", ns,
+                      "--standup-time", "1.0", "--max-state-age-ms", "100")  # fmt: skip
+
     try:
         assert wait_for(lambda: len(truths) > 5, 30.0), "fake Go2 did not start"
         adapter = _spawn(
@@ -227,19 +232,7 @@ def test_full_loop_fake_go2_adapter_bridge(tmp_path):
         )
         assert wait_for(lambda: len(states) > 5, 30.0), "adapter forwards no LowState"
         assert states[-1][1].robot_mode == P.CommandMode.NONE
-        bridge = _spawn(
-            "bridge",
-            "--policy",
-            str(policy),
-            "--connect",
-            f"tcp/127.0.0.1:{port}",
-            "--namespace",
-            ns,
-            "--standup-time",
-            "1.0",
-            "--max-state-age-ms",
-            "100",
-        )
+        bridge = start_bridge()
         assert wait_for(lambda: any(c.mode == P.CommandMode.POLICY for _, c in cmds), 30.0), "policy never ran"
         operate(0.0, 1.5)
         n0 = len(truths)
@@ -265,19 +258,7 @@ def test_full_loop_fake_go2_adapter_bridge(tmp_path):
 
         # a new bridge takes over; then the adapter dies: the bridge faults on stale state
         n1 = len(statuses)
-        bridge = _spawn(
-            "bridge",
-            "--policy",
-            str(policy),
-            "--connect",
-            f"tcp/127.0.0.1:{port}",
-            "--namespace",
-            ns,
-            "--standup-time",
-            "1.0",
-            "--max-state-age-ms",
-            "100",
-        )
+        bridge = start_bridge()
         assert wait_for(lambda: any(s.state == P.BridgeState.RUNNING for s in statuses[n1:]), 30.0), "no 2nd bridge"
         assert wait_for(lambda: states[-1][1].robot_mode == P.CommandMode.POLICY, 5.0)
         adapter.send_signal(signal.SIGKILL)

@@ -27,7 +27,7 @@ import time
 import numpy as np
 
 from legged_casters.deploy import protocol as P
-from legged_casters.deploy import transport, unitree
+from legged_casters.deploy import status, transport, unitree
 from legged_casters.deploy.sim_robot import SimRobot
 from legged_casters.robot import build
 
@@ -146,24 +146,24 @@ def main(argv: list[str] | None = None) -> int:
         f"{1 / r.dt:.0f} Hz, LowState {1 / (r.dt * r.decimation):.0f} Hz; motors {r.map.describe()}",
         flush=True,
     )
-    seen = 0
+    seen, last_cmds = 0, 0
+
+    def tick(_: float) -> None:
+        nonlocal seen
+        seen = r.report_changes(seen, "fake_go2")
+
+    def summary() -> None:
+        nonlocal last_cmds
+        rate = (r.commands_received - last_cmds) / args.summary_every
+        last_cmds = r.commands_received
+        print(
+            f"fake_go2: {r.mode.name}, LowCmd {rate:.0f}/s, bad CRC {r.bad_crc}, sim time "
+            f"{r.steps * r.dt:.1f} s, overruns {r.overruns}, trunk z {r.data.qpos[2]:.2f} m",
+            flush=True,
+        )
+
     try:
-        t0 = time.monotonic()
-        t_end = t0 + args.duration if args.duration > 0 else float("inf")
-        next_summary, last_cmds = t0 + args.summary_every, 0
-        while time.monotonic() < t_end:
-            time.sleep(min(0.2, max(0.0, t_end - time.monotonic())))
-            seen = r.report_changes(seen, "fake_go2")
-            if args.summary_every > 0 and time.monotonic() >= next_summary:
-                rate = (r.commands_received - last_cmds) / args.summary_every
-                last_cmds, next_summary = r.commands_received, next_summary + args.summary_every
-                print(
-                    f"fake_go2: {r.mode.name}, LowCmd {rate:.0f}/s, bad CRC {r.bad_crc}, sim time "
-                    f"{r.steps * r.dt:.1f} s, overruns {r.overruns}, trunk z {r.data.qpos[2]:.2f} m",
-                    flush=True,
-                )
-    except KeyboardInterrupt:
-        pass
+        status.run(args.duration, args.summary_every, tick, summary)
     finally:
         r.stop()
         if session is not None:

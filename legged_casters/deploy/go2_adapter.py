@@ -40,7 +40,7 @@ import time
 import numpy as np
 
 from legged_casters.deploy import protocol as P
-from legged_casters.deploy import transport, unitree
+from legged_casters.deploy import status, transport, unitree
 from legged_casters.robot import build
 
 LOOPBACK = ("lo", "lo0")
@@ -252,47 +252,43 @@ def main(argv: list[str] | None = None) -> int:
         flush=True,
     )
     print(f"go2_adapter: joint -> Unitree motor: {a.map.describe()}", flush=True)
+    seen, last, waited = 1, (0, 0, 0), False
+
+    def tick(elapsed: float) -> None:
+        nonlocal seen, waited
+        seen = status.report_changes(a.mode_changes, seen, "go2_adapter")
+        if not waited and a.lowstates == 0 and elapsed > 5.0:
+            waited = True
+            print(
+                f"go2_adapter: no LowState in 5 s on {args.network_interface}, domain {args.domain_id}: is the "
+                "robot on and connected to this interface?",
+                flush=True,
+            )
+
+    def summary() -> None:
+        nonlocal last
+        now = (a.lowstates, a.commands_received, a.lowcmds_written)
+        rates = [(x - y) / args.summary_every for x, y in zip(now, last, strict=True)]
+        last = now
+        rejected = {k: v for k, v in a.rejected.items() if v}
+        line = (
+            f"go2_adapter: {a.mode.name}, LowState {rates[0]:.0f}/s, commands {rates[1]:.1f}/s, "
+            f"LowCmd {rates[2]:.0f}/s{' (dry run, not sent)' if args.dry_run else ''}, "
+            f"{a.round_trip.summary()}, bad LowState {a.bad_lowstates}, rejected {rejected or 'none'}"
+        )
+        if args.dry_run and a.last_written is not None:
+            q, _, kp, kd = a.last_written
+            line += f"; would send q {np.round(q, 2).tolist()} kp {kp.max():.0f} kd {kd.max():.1f}"
+        print(line, flush=True)
+
     try:
-        t0 = time.monotonic()
-        t_end = t0 + args.duration if args.duration > 0 else float("inf")
-        seen, next_summary = 1, t0 + args.summary_every
-        last = (0, 0, 0)
-        waited = False
-        while time.monotonic() < t_end:
-            time.sleep(min(0.2, max(0.0, t_end - time.monotonic())))
-            changes = list(a.mode_changes)
-            for k in range(seen, len(changes)):
-                why = f" ({changes[k][2]})" if changes[k][2] else ""
-                print(f"go2_adapter: {changes[k - 1][1].name} -> {changes[k][1].name}{why}", flush=True)
-            seen = len(changes)
-            if not waited and a.lowstates == 0 and time.monotonic() - t0 > 5.0:
-                waited = True
-                print(
-                    f"go2_adapter: no LowState in 5 s on {args.network_interface}, domain {args.domain_id}: is the "
-                    "robot on and connected to this interface?",
-                    flush=True,
-                )
-            if args.summary_every > 0 and time.monotonic() >= next_summary:
-                now = (a.lowstates, a.commands_received, a.lowcmds_written)
-                rates = [(x - y) / args.summary_every for x, y in zip(now, last, strict=True)]
-                last, next_summary = now, next_summary + args.summary_every
-                rejected = {k: v for k, v in a.rejected.items() if v}
-                line = (
-                    f"go2_adapter: {a.mode.name}, LowState {rates[0]:.0f}/s, commands {rates[1]:.1f}/s, "
-                    f"LowCmd {rates[2]:.0f}/s{' (dry run, not sent)' if args.dry_run else ''}, "
-                    f"{a.round_trip.summary()}, bad LowState {a.bad_lowstates}, rejected {rejected or 'none'}"
-                )
-                if args.dry_run and a.last_written is not None:
-                    q, _, kp, kd = a.last_written
-                    line += f"; would send q {np.round(q, 2).tolist()} kp {kp.max():.0f} kd {kd.max():.1f}"
-                print(line, flush=True)
-    except KeyboardInterrupt:
-        pass
+        status.run(args.duration, args.summary_every, tick, summary)
     finally:
         a.stop()
         cmd_sub.undeclare()
         low_sub.Close()
         session.close()
+        status.report_changes(a.mode_changes, seen, "go2_adapter")
     print(
         f"go2_adapter: LowState {a.lowstates} (bad {a.bad_lowstates}), commands {a.commands_received}, "
         f"LowCmd {a.lowcmds_written}{' (dry run)' if args.dry_run else ''}, rejected {a.rejected}, "

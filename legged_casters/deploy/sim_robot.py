@@ -43,7 +43,7 @@ import mujoco
 import numpy as np
 
 from legged_casters.deploy import protocol as P
-from legged_casters.deploy import transport
+from legged_casters.deploy import status, transport
 from legged_casters.robot import build, go2
 
 
@@ -219,11 +219,7 @@ class SimRobot:
 
     def report_changes(self, seen: int, prog: str) -> int:
         """Print the mode changes after the first `seen` ones; returns the new count."""
-        changes = list(self.mode_changes)
-        for k in range(max(seen, 1), len(changes)):
-            why = f" ({changes[k][2]})" if changes[k][2] else ""
-            print(f"{prog}: {changes[k - 1][1].name} -> {changes[k][1].name}{why}", flush=True)
-        return len(changes)
+        return status.report_changes(self.mode_changes, seen, prog)
 
     def trunk_height(self) -> float:
         return float(self.data.qpos[2])
@@ -277,26 +273,26 @@ def main(argv: list[str] | None = None) -> int:
     ).start()
     r = zr.robot
     print(f"sim_robot: {args.robot}, physics {1 / r.dt:.0f} Hz, state {1 / (r.dt * r.decimation):.0f} Hz", flush=True)
-    seen = 0
+    seen, last_cmds = 0, 0
+
+    def tick(_: float) -> None:
+        nonlocal seen
+        seen = r.report_changes(seen, "sim_robot")
+
+    def summary() -> None:
+        nonlocal last_cmds
+        rate = (r.commands_received - last_cmds) / args.summary_every
+        last_cmds = r.commands_received
+        rejected = {k: v for k, v in r.rejected.items() if v}
+        print(
+            f"sim_robot: {r.mode.name}, commands {rate:.1f}/s, {r.round_trip.summary()}, "
+            f"sim time {r.steps * r.dt:.1f} s, overruns {r.overruns}, trunk z {r.data.qpos[2]:.2f} m, "
+            f"rejected {rejected or 'none'}",
+            flush=True,
+        )
+
     try:
-        t0 = time.monotonic()
-        t_end = t0 + args.duration if args.duration > 0 else float("inf")
-        next_summary, last_cmds = t0 + args.summary_every, 0
-        while time.monotonic() < t_end:
-            time.sleep(min(0.2, max(0.0, t_end - time.monotonic())))
-            seen = r.report_changes(seen, "sim_robot")
-            if args.summary_every > 0 and time.monotonic() >= next_summary:
-                rate = (r.commands_received - last_cmds) / args.summary_every
-                last_cmds, next_summary = r.commands_received, next_summary + args.summary_every
-                rejected = {k: v for k, v in r.rejected.items() if v}
-                print(
-                    f"sim_robot: {r.mode.name}, commands {rate:.1f}/s, {r.round_trip.summary()}, "
-                    f"sim time {r.steps * r.dt:.1f} s, overruns {r.overruns}, trunk z {r.data.qpos[2]:.2f} m, "
-                    f"rejected {rejected or 'none'}",
-                    flush=True,
-                )
-    except KeyboardInterrupt:
-        pass
+        status.run(args.duration, args.summary_every, tick, summary)
     finally:
         zr.stop()
         session.close()
