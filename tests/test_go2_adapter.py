@@ -177,7 +177,7 @@ def test_adapter_translates_both_ways_and_damps_on_its_watchdog():
     answer = P.JointCommand(P.CommandMode.POLICY, q.tolist(), [20.0] * 12, [0.5] * 12, state_seq=s.header.seq,
                             header=sender.next_header())  # fmt: skip
     a.on_command(answer.encode())
-    lat = a.round_trip.take()
+    lat = a.inbox.round_trip.take()
     assert len(lat) == 1 and 0.0 <= lat[0] < 5.0  # the state it answers -> its arrival
     a.tick(time.monotonic())
     crc, motors = written[-1]

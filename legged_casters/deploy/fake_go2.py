@@ -27,7 +27,7 @@ import time
 import numpy as np
 
 from legged_casters.deploy import protocol as P
-from legged_casters.deploy import status, transport, unitree
+from legged_casters.deploy import robot_side, transport, unitree
 from legged_casters.deploy.sim_robot import SimRobot
 from legged_casters.robot import build
 
@@ -57,13 +57,11 @@ class FakeGo2(SimRobot):
         """DDS thread: a LowCmd -> the command the physics loop applies."""
         now = time.monotonic()
         if cmd.crc != unitree.lowcmd_crc(cmd) or tuple(cmd.head) != unitree.HEAD:
-            with self._lock:
-                self.bad_crc += 1
+            self.bad_crc += 1  # only this (the DDS) thread writes it
             return
         servo, q, dq, kp, kd = self.map.read_command(cmd)
         if not all(np.isfinite(v).all() for v in (q[servo], dq[servo], kp, kd)):
-            with self._lock:
-                self.rejected["nonfinite"] += 1
+            self.inbox.reject("nonfinite")
             return
         off = ~servo
         q, dq, kp, kd = np.where(off, 0.0, q), np.where(off, 0.0, dq), np.where(off, 0.0, kp), np.where(off, 0.0, kd)
@@ -77,7 +75,7 @@ class FakeGo2(SimRobot):
             dq=dq.tolist(),
             header=self.cmd_sender.next_header(),
         )
-        self.accept(msg, now)
+        self.inbox.accept(msg, now)
 
     def _publish_state(self, stamp_ns: int) -> None:
         s = self.data.sensordata
@@ -146,16 +144,10 @@ def main(argv: list[str] | None = None) -> int:
         f"{1 / r.dt:.0f} Hz, LowState {1 / (r.dt * r.decimation):.0f} Hz; motors {r.map.describe()}",
         flush=True,
     )
-    seen, last_cmds = 0, 0
+    watch, rates = robot_side.Watch("fake_go2", r.mode_changes), robot_side.Rates()
 
-    def tick(_: float) -> None:
-        nonlocal seen
-        seen = r.report_changes(seen, "fake_go2")
-
-    def summary() -> None:
-        nonlocal last_cmds
-        rate = (r.commands_received - last_cmds) / args.summary_every
-        last_cmds = r.commands_received
+    def summary(seconds: float) -> None:
+        (rate,) = rates(seconds, r.commands_received)
         print(
             f"fake_go2: {r.mode.name}, LowCmd {rate:.0f}/s, bad CRC {r.bad_crc}, sim time "
             f"{r.steps * r.dt:.1f} s, overruns {r.overruns}, trunk z {r.data.qpos[2]:.2f} m",
@@ -163,12 +155,12 @@ def main(argv: list[str] | None = None) -> int:
         )
 
     try:
-        status.run(args.duration, args.summary_every, tick, summary)
+        watch.run(args.duration, args.summary_every, summary)
     finally:
         r.stop()
         if session is not None:
             session.close()
-        r.report_changes(seen, "fake_go2")
+        watch.report()
     print(
         f"fake_go2: {r.steps} steps ({r.steps * r.dt:.1f} s), LowState {r.lowstates}, LowCmd {r.commands_received}, "
         f"bad CRC {r.bad_crc}, mode {r.mode.name}, trunk at ({r.data.qpos[0]:.3f}, {r.data.qpos[1]:.3f}, "

@@ -40,7 +40,7 @@ import time
 import numpy as np
 
 from legged_casters.deploy import protocol as P
-from legged_casters.deploy import status, transport, unitree
+from legged_casters.deploy import robot_side, transport, unitree
 from legged_casters.robot import build
 
 LOOPBACK = ("lo", "lo0")
@@ -69,21 +69,16 @@ class Go2Adapter:
         self.damping_kd = damping_kd
         self.state_every = max(1, int(state_every))
         self._lock = threading.Lock()
-        self._cmd: P.JointCommand | None = None
-        self._cmd_arrival = 0.0
         self._q = np.zeros(self.n)
-        self.cmd_filter = P.SequenceFilter()
+        self.inbox = robot_side.CommandInbox(self.n)
         self.state_sender = P.Sender()
         self.lowcmd = sdk.new_lowcmd()
         self.mode = P.CommandMode.NONE
         self.mode_changes: list[tuple[float, P.CommandMode, str]] = [(time.monotonic(), self.mode, "")]
-        self.rejected = dict.fromkeys(P.REJECT_REASONS, 0)
         self.bad_lowstates = 0
         self.lowstates = 0
-        self.commands_received = 0
         self.lowcmds_written = 0
         self.last_written: tuple[np.ndarray, ...] | None = None
-        self.round_trip = P.RoundTrip()
         self._running = False
         self._thread: threading.Thread | None = None
 
@@ -102,7 +97,7 @@ class Go2Adapter:
         if count % self.state_every:
             return
         h = self.state_sender.next_header()
-        self.round_trip.sent(h.seq, time.monotonic())
+        self.inbox.round_trip.sent(h.seq, time.monotonic())
         msg = P.RobotState(
             quat=quat.tolist(), gyro=gyro.tolist(), q=q.tolist(), dq=dq.tolist(), robot_mode=self.mode, header=h
         )
@@ -110,35 +105,25 @@ class Go2Adapter:
 
     # --- bridge -> robot --------------------------------------------------------------
     def on_command(self, payload: bytes) -> None:
-        now = time.monotonic()
-        try:
-            msg = P.JointCommand.decode(payload)
-            if len(msg.q) != self.n:
-                raise P.ProtocolError("malformed", f"command for {len(msg.q)} joints, this robot has {self.n}")
-            with self._lock:
-                self.cmd_filter.check(msg.header)
-                self._cmd, self._cmd_arrival = msg, now
-                self.commands_received += 1
-            self.round_trip.answered(msg.state_seq, now)
-        except P.ProtocolError as e:
-            with self._lock:
-                self.rejected[e.reason] += 1
+        self.inbox.on_payload(payload)
+
+    @property
+    def rejected(self) -> dict[str, int]:
+        return self.inbox.rejected
+
+    @property
+    def commands_received(self) -> int:
+        return self.inbox.received
 
     def targets(self, now: float) -> tuple[P.CommandMode, str, tuple[np.ndarray, ...] | None]:
         """(mode, reason, (q, dq, kp, kd)) to write now; None: write nothing."""
-        with self._lock:
-            cmd, arrival, q_meas = self._cmd, self._cmd_arrival, self._q
-        zeros = np.zeros(self.n)
+        cmd, arrival = self.inbox.latest()
         if cmd is None:
             return P.CommandMode.NONE, "", None
-        if now - arrival > self.watchdog:
-            why = f"no command for {1e3 * self.watchdog:.0f} ms"
-            return P.CommandMode.DAMPING, why, (q_meas, zeros, zeros, np.full(self.n, self.damping_kd))
-        q, kd = np.asarray(cmd.q), np.asarray(cmd.kd)
-        if cmd.mode == P.CommandMode.DAMPING:
-            return P.CommandMode.DAMPING, "the bridge asks for damping", (q, zeros, zeros, kd)
-        dq = np.asarray(cmd.dq) if cmd.dq is not None else zeros
-        return P.CommandMode(cmd.mode), "", (q, dq, np.asarray(cmd.kp), kd)
+        with self._lock:
+            q_meas = self._q
+        mode, why, *t = robot_side.command_targets(cmd, arrival, now, self.watchdog, self.damping_kd, q_meas)
+        return mode, why, tuple(t)
 
     def tick(self, now: float) -> None:
         mode, why, t = self.targets(now)
@@ -154,18 +139,7 @@ class Go2Adapter:
         self.lowcmds_written += 1
 
     def _loop(self, rate: float) -> None:
-        period = 1.0 / rate
-        t0, k = time.monotonic(), 0
-        while self._running:
-            deadline = t0 + k * period
-            now = time.monotonic()
-            if deadline > now:
-                time.sleep(deadline - now)
-                now = time.monotonic()
-            elif now - deadline > 0.05:
-                t0, k = now, 0
-            self.tick(now)
-            k += 1
+        robot_side.run_fixed_rate(1.0 / rate, lambda: self._running, lambda now, _: self.tick(now))
 
     def start(self, rate: float) -> Go2Adapter:
         self._running = True
@@ -252,11 +226,11 @@ def main(argv: list[str] | None = None) -> int:
         flush=True,
     )
     print(f"go2_adapter: joint -> Unitree motor: {a.map.describe()}", flush=True)
-    seen, last, waited = 1, (0, 0, 0), False
+    watch, rates = robot_side.Watch("go2_adapter", a.mode_changes), robot_side.Rates()
+    waited = False
 
     def tick(elapsed: float) -> None:
-        nonlocal seen, waited
-        seen = status.report_changes(a.mode_changes, seen, "go2_adapter")
+        nonlocal waited
         if not waited and a.lowstates == 0 and elapsed > 5.0:
             waited = True
             print(
@@ -265,16 +239,13 @@ def main(argv: list[str] | None = None) -> int:
                 flush=True,
             )
 
-    def summary() -> None:
-        nonlocal last
-        now = (a.lowstates, a.commands_received, a.lowcmds_written)
-        rates = [(x - y) / args.summary_every for x, y in zip(now, last, strict=True)]
-        last = now
+    def summary(seconds: float) -> None:
+        low, cmds, written = rates(seconds, a.lowstates, a.commands_received, a.lowcmds_written)
         rejected = {k: v for k, v in a.rejected.items() if v}
         line = (
-            f"go2_adapter: {a.mode.name}, LowState {rates[0]:.0f}/s, commands {rates[1]:.1f}/s, "
-            f"LowCmd {rates[2]:.0f}/s{' (dry run, not sent)' if args.dry_run else ''}, "
-            f"{a.round_trip.summary()}, bad LowState {a.bad_lowstates}, rejected {rejected or 'none'}"
+            f"go2_adapter: {a.mode.name}, LowState {low:.0f}/s, commands {cmds:.1f}/s, "
+            f"LowCmd {written:.0f}/s{' (dry run, not sent)' if args.dry_run else ''}, "
+            f"{a.inbox.round_trip.summary()}, bad LowState {a.bad_lowstates}, rejected {rejected or 'none'}"
         )
         if args.dry_run and a.last_written is not None:
             q, _, kp, kd = a.last_written
@@ -282,13 +253,13 @@ def main(argv: list[str] | None = None) -> int:
         print(line, flush=True)
 
     try:
-        status.run(args.duration, args.summary_every, tick, summary)
+        watch.run(args.duration, args.summary_every, summary, tick)
     finally:
         a.stop()
         cmd_sub.undeclare()
         low_sub.Close()
         session.close()
-        status.report_changes(a.mode_changes, seen, "go2_adapter")
+        watch.report()
     print(
         f"go2_adapter: LowState {a.lowstates} (bad {a.bad_lowstates}), commands {a.commands_received}, "
         f"LowCmd {a.lowcmds_written}{' (dry run)' if args.dry_run else ''}, rejected {a.rejected}, "

@@ -43,7 +43,7 @@ import mujoco
 import numpy as np
 
 from legged_casters.deploy import protocol as P
-from legged_casters.deploy import status, transport
+from legged_casters.deploy import robot_side, transport
 from legged_casters.robot import build, go2
 
 
@@ -99,21 +99,14 @@ class SimRobot:
         self.damp_kd = np.full(self.n, float(damping_kd))
         self._zeros = np.zeros(self.n)
 
-        self._lock = threading.Lock()
-        self._cmd: P.JointCommand | None = None
-        self._cmd_arrival = 0.0
-        self.cmd_filter = P.SequenceFilter()
-        self.rejected = dict.fromkeys(P.REJECT_REASONS, 0)
-        self.commands_received = 0
+        self.inbox = robot_side.CommandInbox(self.n)
         self.mode = P.CommandMode.HOLD if startup == "hold" else P.CommandMode.DAMPING
-        self._why = ""
         self.mode_changes: list[tuple[float, P.CommandMode, str]] = [(time.monotonic(), self.mode, "")]
-        """(when, new mode, why): what report_changes() prints."""
+        """(when, new mode, why): what the live status prints."""
         self.state_sender = P.Sender()
         self.truth_sender = P.Sender()
         self.publish_state = threading.Event()
         self.publish_state.set()
-        self.round_trip = P.RoundTrip()
         self.steps = 0
         self.overruns = 0
         self._running = False
@@ -121,56 +114,36 @@ class SimRobot:
 
     # --- input -----------------------------------------------------------------------
     def on_command(self, payload: bytes) -> None:
-        now = time.monotonic()
-        try:
-            msg = P.JointCommand.decode(payload)
-            if len(msg.q) != self.n:
-                raise P.ProtocolError("malformed", f"command for {len(msg.q)} joints, this robot has {self.n}")
-            with self._lock:
-                self.cmd_filter.check(msg.header)
-            self.round_trip.answered(msg.state_seq, now)
-            self.accept(msg, now)
-        except P.ProtocolError as e:
-            with self._lock:
-                self.rejected[e.reason] += 1
+        self.inbox.on_payload(payload)
 
-    def accept(self, msg: P.JointCommand, now: float) -> None:
-        """Apply a checked command from the next physics step on (and restart the watchdog)."""
-        with self._lock:
-            self._cmd, self._cmd_arrival = msg, now
-            self.commands_received += 1
+    @property
+    def rejected(self) -> dict[str, int]:
+        return self.inbox.rejected
+
+    @property
+    def commands_received(self) -> int:
+        return self.inbox.received
 
     # --- physics ---------------------------------------------------------------------
-    def _gains(self, now: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, P.CommandMode]:
-        """(q target, dq target, kp, kd, mode) to apply now; self._why says why when it is not obvious."""
-        with self._lock:
-            cmd, arrival = self._cmd, self._cmd_arrival
+    def _gains(self, now: float) -> tuple:
+        """(mode, why, q target, dq target, kp, kd) to apply now."""
+        cmd, arrival = self.inbox.latest()
         z = self._zeros
-        self._why = ""
         if cmd is None:
             if self.startup == "hold":
-                return self.hold_q, z, self.hold_kp, self.hold_kd, P.CommandMode.HOLD
-            self._why = "start-up"
-            return self.hold_q, z, z, self.damp_kd, P.CommandMode.DAMPING
-        if now - arrival > self.watchdog:
-            self._why = "no command for the watchdog time"
-            return self.hold_q, z, z, self.damp_kd, P.CommandMode.DAMPING
-        q = np.asarray(cmd.q)
-        if cmd.mode == P.CommandMode.DAMPING:
-            self._why = "damping commanded"
-            return q, z, z, np.asarray(cmd.kd), P.CommandMode.DAMPING
-        dq = np.asarray(cmd.dq) if cmd.dq is not None else z
-        return q, dq, np.asarray(cmd.kp), np.asarray(cmd.kd), P.CommandMode(cmd.mode)
+                return P.CommandMode.HOLD, "", self.hold_q, z, self.hold_kp, self.hold_kd
+            return P.CommandMode.DAMPING, "start-up", self.hold_q, z, z, self.damp_kd
+        return robot_side.command_targets(cmd, arrival, now, self.watchdog, self.damp_kd, self.hold_q)
 
     def step(self, now: float, stamp_ns: int) -> None:
         m, d = self.model, self.data
         mujoco.mj_step1(m, d)
         if self.steps % self.decimation == 0 and self.publish_state.is_set():
             self._publish_state(stamp_ns)
-        q_t, dq_t, kp, kd, mode = self._gains(now)
+        mode, why, q_t, dq_t, kp, kd = self._gains(now)
         if mode != self.mode:
             self.mode = mode
-            self.mode_changes.append((now, mode, self._why))
+            self.mode_changes.append((now, mode, why))
         q, dq = d.qpos[self.qadr], d.qvel[self.dadr]
         tau = kp * (q_t - q) + kd * (dq_t - dq)
         d.ctrl[self.act] = np.clip(tau, -self.tau_limit, self.tau_limit)
@@ -184,27 +157,19 @@ class SimRobot:
         msg = P.RobotState(
             quat=s[self._quat], gyro=s[self._gyro], q=s[self._qs], dq=s[self._dqs], robot_mode=self.mode, header=h
         )
-        self.round_trip.sent(h.seq, time.monotonic())
+        self.inbox.round_trip.sent(h.seq, time.monotonic())
         self.publish("state", msg.encode())
         th = self.truth_sender.next_header()
         th.stamp_ns = stamp_ns
         self.publish("truth", P.SimTruth(self.data.time, self.data.qpos[0:3], self.data.qvel[0:3], th).encode())
 
     def _loop(self) -> None:
-        t0 = time.monotonic()
-        k = 0
-        while self._running:
-            deadline = t0 + k * self.dt
-            now = time.monotonic()
-            if deadline > now:
-                time.sleep(deadline - now)
-                now = time.monotonic()
-            elif now - deadline > 0.05:  # more than 50 ms behind: give up catching up
-                self.overruns += 1
-                t0, k = now, 0
-                deadline = now
-            self.step(now, int(deadline * 1e9))
-            k += 1
+        def overrun() -> None:
+            self.overruns += 1
+
+        robot_side.run_fixed_rate(
+            self.dt, lambda: self._running, lambda now, deadline: self.step(now, int(deadline * 1e9)), overrun
+        )
 
     def start(self) -> SimRobot:
         self._running = True
@@ -216,10 +181,6 @@ class SimRobot:
         self._running = False
         if self._thread is not None:
             self._thread.join(timeout=2.0)
-
-    def report_changes(self, seen: int, prog: str) -> int:
-        """Print the mode changes after the first `seen` ones; returns the new count."""
-        return status.report_changes(self.mode_changes, seen, prog)
 
     def trunk_height(self) -> float:
         return float(self.data.qpos[2])
@@ -273,30 +234,24 @@ def main(argv: list[str] | None = None) -> int:
     ).start()
     r = zr.robot
     print(f"sim_robot: {args.robot}, physics {1 / r.dt:.0f} Hz, state {1 / (r.dt * r.decimation):.0f} Hz", flush=True)
-    seen, last_cmds = 0, 0
+    watch, rates = robot_side.Watch("sim_robot", r.mode_changes), robot_side.Rates()
 
-    def tick(_: float) -> None:
-        nonlocal seen
-        seen = r.report_changes(seen, "sim_robot")
-
-    def summary() -> None:
-        nonlocal last_cmds
-        rate = (r.commands_received - last_cmds) / args.summary_every
-        last_cmds = r.commands_received
+    def summary(seconds: float) -> None:
+        (rate,) = rates(seconds, r.commands_received)
         rejected = {k: v for k, v in r.rejected.items() if v}
         print(
-            f"sim_robot: {r.mode.name}, commands {rate:.1f}/s, {r.round_trip.summary()}, "
+            f"sim_robot: {r.mode.name}, commands {rate:.1f}/s, {r.inbox.round_trip.summary()}, "
             f"sim time {r.steps * r.dt:.1f} s, overruns {r.overruns}, trunk z {r.data.qpos[2]:.2f} m, "
             f"rejected {rejected or 'none'}",
             flush=True,
         )
 
     try:
-        status.run(args.duration, args.summary_every, tick, summary)
+        watch.run(args.duration, args.summary_every, summary)
     finally:
         zr.stop()
         session.close()
-        r.report_changes(seen, "sim_robot")
+        watch.report()
     print(
         f"sim_robot: {r.steps} steps ({r.steps * r.dt:.1f} s), commands {r.commands_received}, "
         f"rejected {r.rejected}, overruns {r.overruns}, mode {r.mode.name}, "
