@@ -80,15 +80,23 @@ def test_robots_spawn_on_the_course_at_the_right_height_and_evaluation_is_flat()
     assert flat.terrain.segments == []
 
 
-def test_a_trace_keeps_every_step_and_starts_at_the_origin():
+def test_a_trace_keeps_every_step_and_starts_at_the_origin(monkeypatch):
     """Each recorded step is its own copy (the sim reuses its state buffers: Fig. 7's frames
     were once all the last step), and a run starts standing at the origin even for a
     policy whose training config spawned robots along a course."""
+    load = reproduce.evaluate.load_exported
+
+    def trained_on_a_course(*args, **kwargs):
+        out = load(*args, **kwargs)
+        out[2].terrain.spawn_on_course = True  # the env config, as a course-trained export carries it
+        return out
+
+    monkeypatch.setattr(reproduce.evaluate, "load_exported", trained_on_a_course)
     tr = reproduce.run_policy(
         "caster_omni",
         1.0,
         lambda t, env: (0.5, 0.0, 0.0),
-        overrides={"terrain.segments": [[10.0, 3.0]], "terrain.start_x": 2.0, "terrain.spawn_on_course": True},
+        overrides={"terrain.segments": [[10.0, 3.0]], "terrain.start_x": 2.0},
     )
     qpos = tr.extra["qpos"]
     assert len(qpos) == len(tr.t) and not np.allclose(qpos[0], qpos[-1])

@@ -116,6 +116,8 @@ class LeggedEnv(VecEnv):
             dim=1,
         )
         self.joint_vel_limits = torch.tensor(layout.velocity_limits, device=dev)
+        self._torque_sensors = tuple(f"{j}_torque" for j in layout.joints)
+        self._vel_sensors = tuple(f"{j}_vel" for j in layout.joints)
         self.torque_limits = torch.tensor(layout.torque_limits, device=dev)
         self.trunk_id = m.body(go2.TRUNK_BODY).id
         self._sensor_cols: dict[tuple[str, ...], torch.Tensor] = {}
@@ -216,9 +218,8 @@ class LeggedEnv(VecEnv):
         where the backend keeps them (MuJoCo C), else at the step's end: the integrand of
         the paper's mechanical cost of transport."""
         sub = self.sim.substep_sensordata()
-        joints = self.layout.joints
-        tau = sub[..., self._sensor_columns(tuple(f"{j}_torque" for j in joints))]
-        dq = sub[..., self._sensor_columns(tuple(f"{j}_vel" for j in joints))]
+        tau = sub[..., self._sensor_columns(self._torque_sensors)]
+        dq = sub[..., self._sensor_columns(self._vel_sensors)]
         return (tau * dq).clamp(min=0.0).sum(dim=-1).mean(dim=1).float()
 
     def contact_found(self, names: tuple[str, ...]) -> torch.Tensor:
@@ -247,7 +248,7 @@ class LeggedEnv(VecEnv):
         self.projected_gravity = quat_rotate_inverse(self.base_quat, gravity)
         self.joint_pos = qpos[:, self.joint_qadr]
         self.joint_vel = qvel[:, self.joint_dadr]
-        self.torques = self.sensor_values(tuple(f"{j}_torque" for j in self.layout.joints))
+        self.torques = self.sensor_values(self._torque_sensors)
 
     # --- stepping ---------------------------------------------------------------------
     def get_observations(self) -> TensorDict:

@@ -115,9 +115,10 @@ EVAL_SETTINGS = {
     "init_state.random_yaw": False,
     "commands.curriculum": False,
     "terrain.segments": [],
+    "terrain.spawn_on_course": False,
 }
-"""What makes an env an evaluation env: no noise, no randomisation, a standing start on
-flat ground (a task trained on a terrain course is evaluated on the flat floor; the
+"""What makes an env an evaluation env: no noise, no randomisation, a standing start at
+the origin on flat ground (a task trained on a terrain course is evaluated on the flat floor; the
 slope experiments add their course explicitly, scripts/reproduce.py)."""
 
 

@@ -90,10 +90,7 @@ def run_policy(
     _, spec, env_cfg, policy, _, _ = evaluate.load_exported(_shipped(task), task)
     scenario = evaluate.Scenario("reproduce", ((0.0, (0.0, 0.0, 0.0)),), duration, 0.0)
     cfg = evaluate.eval_env_cfg(env_cfg, (scenario,))
-    # A standing start at the origin, whatever the policy was trained with (a policy
-    # trained on a course carries terrain.spawn_on_course in its env config).
-    overrides = {**(overrides or {}), "terrain.spawn_on_course": False}
-    env = spec.env_class(common.with_overrides(cfg, overrides, "reproduce"))
+    env = spec.env_class(common.with_overrides(cfg, overrides or {}, "reproduce"))
     try:
         env.set_commands(torch.zeros(1, 3))
         if mode_at is not None:
@@ -682,7 +679,7 @@ def campus(out: Path, quick: bool) -> Result:
         # Distance along the trunk's path averaged over 1 s: the casters' 2 Hz sideways sway
         # (and a trot's bob) is not distance travelled and would lower the COT.
         n = max(1, int(round(1.0 / tr.dt)))
-        xy = np.c_[_smooth_edges(tr.pos[:, 0], n), _smooth_edges(tr.pos[:, 1], n)]
+        xy = np.c_[_smooth(tr.pos[:, 0], n), _smooth(tr.pos[:, 1], n)]
         step = np.r_[0.0, np.linalg.norm(np.diff(xy, axis=0), axis=1)]
         ground = course.height(tr.pos[:, 0])
         climb = np.r_[0.0, np.diff(ground)]
@@ -697,7 +694,7 @@ def campus(out: Path, quick: bool) -> Result:
             cot = tr.power[sel].sum() * tr.dt / (weight * d) if d > 0.5 else math.nan
             parts.append(f"{kind} {cot:.3f}")
         total = step.sum()  # what the trunk travelled, detours included
-        done = min(follower.progress + (follower.lookahead if follower.done else 0.0), length)  # along the loop
+        done = length if follower.done else follower.progress  # metres of the loop completed
         # Overall COT per metre of the loop completed, so that a robot's detours (the casters
         # run wide after a downhill) cost it rather than lower its COT.
         overall = tr.power.sum() * tr.dt / (weight * done) if done > 0 else math.nan
@@ -772,17 +769,12 @@ def campus(out: Path, quick: bool) -> Result:
     )
 
 
-def _smooth_edges(x: np.ndarray, n: int) -> np.ndarray:
+def _smooth(x: np.ndarray, n: int) -> np.ndarray:
     """Moving average over n samples that shrinks its window at both ends (no zero padding)."""
     n = max(1, min(n, len(x)))
     total = np.convolve(x, np.ones(n), mode="same")
     count = np.convolve(np.ones_like(x), np.ones(n), mode="same")
     return total / count
-
-
-def _smooth(x: np.ndarray, n: int) -> np.ndarray:
-    n = max(1, min(n, len(x)))
-    return np.convolve(x, np.ones(n) / n, mode="same")
 
 
 EXPERIMENTS: dict[str, Callable[[Path, bool], Result]] = {
