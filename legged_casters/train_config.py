@@ -13,6 +13,8 @@ class PolicyCfg:
     activation: Literal["elu", "relu", "tanh", "selu", "gelu", "lrelu"] = "elu"
     init_noise_std: float = field(default=1.0, metadata={"min": 0.0})
     obs_normalization: bool = True
+    critic_history: bool = True
+    """Whether the critic's MLP reads the actor's proprioceptive history (it has the privileged state)."""
 
 
 @dataclass
@@ -32,6 +34,19 @@ class PPOCfg:
 
 
 @dataclass
+class EstimatorCfg:
+    """The actor's velocity estimator (legged_casters.learning.estimator); off while hidden_dims is empty."""
+
+    hidden_dims: tuple[int, ...] = ()
+    actor_history: bool = True
+    """Whether the actor's MLP also reads the proprioceptive history (else only the estimator does)."""
+    learning_rate: float = field(default=1e-3, metadata={"min": 0.0})
+    epochs: int = field(default=2, metadata={"min": 1})
+    """Passes of Adam over each rollout, after PPO's update."""
+    mini_batches: int = field(default=4, metadata={"min": 1})
+
+
+@dataclass
 class TrainCfg:
     experiment_name: str = "default"
     run_name: str = ""
@@ -41,10 +56,16 @@ class TrainCfg:
     seed: int = 1
     policy: PolicyCfg = field(default_factory=PolicyCfg)
     algorithm: PPOCfg = field(default_factory=PPOCfg)
+    estimator: EstimatorCfg = field(default_factory=EstimatorCfg)
 
-    def to_rsl_rl(self, actor_prior: dict | None = None) -> dict:
+    def for_env(self, env) -> dict:
+        """to_rsl_rl() with what the env says about its actor (prior, observation columns)."""
+        return self.to_rsl_rl(env.actor_prior(), env.policy_obs_columns())
+
+    def to_rsl_rl(self, actor_prior: dict | None = None, obs_columns: dict | None = None) -> dict:
         """The dict OnPolicyRunner expects: actor on "policy", critic on "policy" + "critic".
-        `actor_prior` (from env.actor_prior()): the actor adds that trajectory prior to its mean."""
+        `actor_prior` (from env.actor_prior()): the actor adds that trajectory prior to its mean.
+        `obs_columns` (env.policy_obs_columns()): needed with the estimator."""
         p = self.policy
         cfg = {
             "num_steps_per_env": self.num_steps_per_env,
@@ -70,6 +91,28 @@ class TrainCfg:
             "algorithm": {"class_name": "rsl_rl.algorithms.PPO", **vars(self.algorithm)},
         }
         if actor_prior is not None:
-            cfg["actor"]["class_name"] = "legged_casters.models.PriorMLPModel"
+            cfg["actor"]["class_name"] = "legged_casters.learning.models.PriorMLPModel"
             cfg["actor"]["prior"] = actor_prior
+        history = (obs_columns or {}).get("proprio_history")
+        if not p.critic_history and history is not None:
+            cfg["critic"]["class_name"] = "legged_casters.learning.models.ColumnsMLPModel"
+            cfg["critic"]["drop"] = list(history)
+        est = self.estimator
+        if est.hidden_dims:
+            if actor_prior is None or obs_columns is None:
+                raise ValueError("the velocity estimator needs a task with an actor prior and its observation columns")
+            if not est.actor_history and history is None:
+                raise ValueError("estimator.actor_history=false needs a proprio_history term in the policy observation")
+            cfg["actor"]["estimator"] = {
+                "hidden_dims": list(est.hidden_dims),
+                "out_dim": 3,
+                "actor_history": est.actor_history,
+                "history_slice": list(history) if history else None,
+            }
+            cfg["algorithm"]["class_name"] = "legged_casters.learning.estimator.EstimatorPPO"
+            cfg["algorithm"].update(
+                estimator_learning_rate=est.learning_rate,
+                estimator_epochs=est.epochs,
+                estimator_mini_batches=est.mini_batches,
+            )
         return cfg

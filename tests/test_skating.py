@@ -13,7 +13,7 @@ from legged_casters import registry
 from legged_casters.deploy import protocol as P
 from legged_casters.deploy.policy import ObservationBuilder, PolicyFormatError, load_meta
 from legged_casters.envs.gait import GaitPrior, GaitPriorCfg, gait_prior
-from legged_casters.models import PriorMLPModel
+from legged_casters.learning.models import PriorMLPModel
 from legged_casters.robot import go2
 from legged_casters.tools import evaluate, export
 
@@ -131,7 +131,7 @@ def test_the_actor_computes_the_same_prior_from_its_observation(env, uphill):
 
 def test_ppo_learns_a_residual_around_the_prior(tmp_path):
     e = registry.make_env(TASK, CPU, num_envs=4)
-    cfg = registry.get_task(TASK).train_cfg.to_rsl_rl(e.actor_prior())
+    cfg = registry.get_task(TASK).train_cfg.for_env(e)
     cfg["num_steps_per_env"] = 8
     runner = OnPolicyRunner(e, copy.deepcopy(cfg), log_dir=str(tmp_path), device="cpu")
     actor = runner.alg.actor

@@ -183,7 +183,7 @@ class LeggedEnv(VecEnv):
         return dict(self.OBSERVATIONS)
 
     def actor_prior(self) -> dict | None:
-        """Keyword arguments of a trajectory prior inside the actor (legged_casters.models),
+        """Keyword arguments of a trajectory prior inside the actor (legged_casters.learning.models),
         or None: the actor is a plain MLP."""
         return None
 
@@ -195,6 +195,14 @@ class LeggedEnv(VecEnv):
             slices[name] = [start, scale]
             start += dim
         return slices
+
+    def policy_obs_columns(self) -> dict[str, tuple[int, int]]:
+        """Policy observation term -> (start, stop) columns in the actor's input."""
+        cols, start = {}, 0
+        for name, dim, _ in self.obs_layout["policy"]:
+            cols[name] = (start, start + dim)
+            start += dim
+        return cols
 
     def observation_dims(self) -> dict[str, int]:
         return {group: sum(dim for _, dim, _ in layout) for group, layout in self.obs_layout.items()}

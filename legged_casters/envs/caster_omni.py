@@ -39,6 +39,7 @@ from legged_casters.envs.config import (
     TerminationCfg,
 )
 from legged_casters.envs.gait import GaitPriorCfg, advance_phase, gait_prior
+from legged_casters.learning.estimator import TARGET_GROUP
 from legged_casters.robot import go2
 from legged_casters.train_config import TrainCfg
 from legged_casters.utils.math import wrap_to_pi, yaw_from_quat
@@ -134,6 +135,7 @@ class CasterOmniEnv(LeggedEnv):
     OBSERVATIONS = {
         "policy": ("commands", "mode_mask", "ang_vel", "projected_gravity", "joint_pos", "joint_vel", "actions"),
         "critic": ("caster_zaxis", "swivel_pos", "swivel_vel", "lin_vel"),
+        TARGET_GROUP: ("base_lin_vel",),  # what the actor's velocity estimator learns to output
     }
     COLLISION_SENSORS = tuple(
         f"{leg}_{part}_contact" for leg in go2.LEGS for part in ("thigh", "calf", "caster_base", "caster_fork")
@@ -282,8 +284,23 @@ class CasterOmniEnv(LeggedEnv):
         return torch.cat([getattr(self, f"_obs_{t}")() * scales.get(t, 1.0) for t in HISTORY_TERMS], dim=1)
 
     def _after_observations(self) -> None:
+        """Push this step's HISTORY_TERMS into the history, as the policy observed them (with
+        the observation noise: a robot's history is as noisy as its current reading)."""
         if self.cfg.history_length:
-            self.history = torch.cat([self._proprio().unsqueeze(1), self.history[:, :-1]], dim=1)
+            start, stop = self._history_columns()
+            newest = self.obs_buf["policy"][:, start:stop].unsqueeze(1)
+            self.history = torch.cat([newest, self.history[:, :-1]], dim=1)
+
+    def _history_columns(self) -> tuple[int, int]:
+        """The policy observation's columns of HISTORY_TERMS (contiguous, in that order)."""
+        cols = getattr(self, "_history_cols", None)
+        if cols is None:
+            layout = self.policy_obs_columns()
+            spans = [layout[t] for t in HISTORY_TERMS]
+            if any(a[1] != b[0] for a, b in zip(spans, spans[1:], strict=False)):
+                raise ValueError(f"the history terms {HISTORY_TERMS} must be contiguous in the policy observation")
+            cols = self._history_cols = (spans[0][0], spans[-1][1])
+        return cols
 
     def history_spec(self) -> dict | None:
         """What the deployment needs to rebuild proprio_history (policy.yaml `history`)."""
@@ -390,6 +407,14 @@ def caster_omni_paper_cfg() -> CasterOmniCfg:
 
 def caster_omni_train_cfg() -> TrainCfg:
     cfg = TrainCfg(experiment_name="caster_omni", max_iterations=1000)
+    # Sized for the 2-core machines by measurement (scripts/bench_train.py, docs/tasks.md): the
+    # velocity estimator reads the 420-value history, the actor's MLP only the current terms
+    # and the estimate; the critic has the privileged state and skips the history.
+    cfg.policy.actor_hidden_dims = (256, 128, 64)
+    cfg.policy.critic_hidden_dims = (256, 128, 64)
+    cfg.policy.critic_history = False
+    cfg.estimator.hidden_dims = (128, 64)
+    cfg.estimator.actor_history = False
     # Low exploration noise and no entropy bonus: with the default std 1.0 the noise
     # alone propels the robot and the mean action learns to stand (docs/tasks.md).
     cfg.policy.init_noise_std = 0.2

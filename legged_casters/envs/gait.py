@@ -21,7 +21,7 @@ deployed policy can compute it from what it observes:
   makes grows with its deflection (Fig. 3) and a climb needs more push at the same
   speed. Downhill and across-slope it stays as on the flat.
 
-The actor adds this prior to its MLP output (`legged_casters.models.PriorMLPModel`,
+The actor adds this prior to its MLP output (`legged_casters.learning.models.PriorMLPModel`,
 in action units); the env applies actions as they come. The export wraps both into
 one network, so a robot runs the sum from the observation alone (the clock phase is
 an observation term that the deployment bridge computes from its own step counter,
@@ -105,7 +105,7 @@ def _prior(
     ux, uy = vx / speed.clamp(min=1e-6), vy / speed.clamp(min=1e-6)
     tilt_x = tilt * ramp * ux
     tilt_y = tilt * lateral_gain * ramp * uy
-    amp = torch.full_like(sin_phase, amplitude)
+    amp = torch.zeros_like(sin_phase) + amplitude  # a float, or one per env (scripts/top_speed.py)
     if uphill_gain > 0.0:
         # the trunk's uphill grade along the commanded planar direction: gravity (trunk
         # frame) pulls backwards against the command when climbing

@@ -28,6 +28,7 @@ from tensordict import TensorDict
 
 from legged_casters.tools import common
 from legged_casters.tools.common import UsageError
+from legged_casters.utils.math import wrap_to_pi, yaw_from_quat
 
 PROG = "evaluate.py"
 
@@ -83,7 +84,48 @@ QUICK = tuple(
     for s in TRACKING
     if s.name in ("vx +0.5", "vx -0.5", "vx +1.0", "vy +0.4", "vy -0.4", "wz +0.8", "wz -0.8")
 )
-SCENARIO_SETS = {"full": FULL, "quick": QUICK}
+TOP_SPEED = {"forward": 2.5, "backward": 3.5}
+"""m/s, the open-loop top speeds of the caster model, rounded down (scripts/top_speed.py, docs/tasks.md)."""
+SLALOM_PERIOD_S = 2.25
+"""The vy slalom: vx 0.8 m/s, vy +0.4 / -0.4 m/s alternating every this many seconds."""
+RAMP_TARGET, RAMP_S = -4.5, 6.0
+"""The Fig. 9 ramp: vx from 0 to RAMP_TARGET m/s over RAMP_S seconds, then held."""
+
+
+def _speed(name: str, cmd, long: bool) -> Scenario:
+    return _const(name, cmd, duration=10.0 if long else 8.0, measure_from=5.0 if long else 3.0)
+
+
+SPEED = tuple(
+    _speed(f"vx {sign * v:+.2f}", (sign * v, 0.0, 0.0), v >= 1.5)
+    for v in (0.25, 0.5, 1.0, 1.5, 2.0)
+    for sign in (1, -1)
+) + (
+    _speed(f"vx top {TOP_SPEED['forward']:+.1f}", (TOP_SPEED["forward"], 0.0, 0.0), True),
+    _speed(f"vx top {-TOP_SPEED['backward']:+.1f}", (-TOP_SPEED["backward"], 0.0, 0.0), True),
+) + tuple(
+    _speed(f"vy {sign * v:+.2f}", (0.0, sign * v, 0.0), False) for v in (0.2, 0.4, 0.6) for sign in (1, -1)
+) + (
+    Scenario(
+        "vy slalom",
+        tuple((2.0 + k * SLALOM_PERIOD_S, (0.8, 0.4 if k % 2 == 0 else -0.4, 0.0)) for k in range(8)),
+        2.0 + 8 * SLALOM_PERIOD_S, 2.0, kind="slalom",
+    ),
+    Scenario(
+        "fig9 ramp",
+        tuple((k * 0.25, (RAMP_TARGET * min(k * 0.25 / RAMP_S, 1.0), 0.0, 0.0)) for k in range(int(RAMP_S / 0.25) + 1)),
+        RAMP_S + 4.0, 0.0, kind="ramp",
+    ),
+)  # fmt: skip
+"""The speed sweep of issue 20: vx from 0.25 m/s to the top speed both ways, vy, the vy
+slalom and the Fig. 9 backward ramp (the slalom starts with 2 s of vx 0.8 alone)."""
+SPEED_BARS = {"vx": ((1.5, 0.15), (2.0, 0.3)), "vy": ((0.4, 0.1),)}
+"""Issue 20's speed-sweep bars: axis -> ((up to this |command|, max mean |error|), ...)."""
+SLALOM_SWING, SLALOM_HEADING_DEG = (0.3, 0.6), 30.0
+RAMP_BEST_2S = 2.0
+ESTIMATOR_RMS = 0.1
+
+SCENARIO_SETS = {"full": FULL, "quick": QUICK, "speed": SPEED, "all": FULL + SPEED}
 
 THRESHOLDS = {
     "vx +0.5": ("vx", 0.15), "vx -0.5": ("vx", 0.15), "vx +1.0": ("vx", 0.15), "vx -1.0": ("vx", 0.15),
@@ -183,9 +225,11 @@ def _schedule(scenarios, owner: list[int], steps: int, dt: float, ranges: dict, 
     return cmds, alive
 
 
-def run_scenarios(env, policy: Policy, scenarios=QUICK, seed: int = 0) -> list[ScenarioResult]:
+def run_scenarios(env, policy: Policy, scenarios=QUICK, seed: int = 0, estimator=None) -> list[ScenarioResult]:
     """Run `policy` (TensorDict obs -> actions) on `env` (an evaluation env with one env
-    per scenario copy) through `scenarios`; return one result per scenario."""
+    per scenario copy) through `scenarios`; return one result per scenario. `estimator`
+    (TensorDict obs -> (n, 3) trunk velocity estimate, m/s): its RMS error per scenario
+    (extra `est_rms`)."""
     dev = env.device
     n = env.num_envs
     owner = [i for i, s in enumerate(scenarios) for _ in range(s.copies)]
@@ -206,6 +250,8 @@ def run_scenarios(env, policy: Policy, scenarios=QUICK, seed: int = 0) -> list[S
     power_log = torch.zeros(steps, n)  # positive mechanical power of all actuated joints (W)
     pos_log = torch.zeros(steps, n, 2)
     swivel_log = torch.zeros(steps, n, 4) if hasattr(env, "swivel_vel") else None
+    yaw_log = torch.zeros(steps, n)
+    est_log = torch.zeros(steps, n) if estimator is not None else None  # squared estimate error
     falls = torch.zeros(n, dtype=torch.long)
     for k in range(steps):
         cmd = cmds_all[k]
@@ -220,12 +266,16 @@ def run_scenarios(env, policy: Policy, scenarios=QUICK, seed: int = 0) -> list[S
             env.sim.reset(ids, env.sim.qpos[ids].clone(), qvel)
         with torch.no_grad():
             actions = policy(obs)
+            if est_log is not None:  # the estimate the actor used for this step's action
+                err = estimator(obs).cpu() - env.base_lin_vel.cpu()
+                est_log[k] = err.pow(2).sum(dim=1)
         obs = env.step(actions)[0]
         fell = (env.terminated_buf & ~env.time_out_buf).cpu()
         falls += (fell & alive[k]).long()
         vel_log[k] = torch.cat([env.base_lin_vel[:, :2], env.base_ang_vel[:, 2:3]], dim=1).cpu()
         power_log[k] = env.positive_power().cpu()
         pos_log[k] = env.base_pos[:, :2].cpu()
+        yaw_log[k] = yaw_from_quat(env.base_quat).cpu()
         if swivel_log is not None:
             swivel_log[k] = env.swivel_vel.cpu()
     results = []
@@ -254,6 +304,19 @@ def run_scenarios(env, policy: Policy, scenarios=QUICK, seed: int = 0) -> list[S
             # No backward motion before the step, no sign change to time: that fails the check.
             r.extra["sign_change_s"] = float(positive[0] + 1) * env.dt if reversed_ else math.inf
             r.extra["vx_before_step"] = before
+        if est_log is not None:
+            r.extra["est_rms"] = float(est_log[k0:k1, cols].mean().sqrt())
+        if s.kind == "slalom":
+            y = pos_log[k0:k1, cols[0], 1]
+            heading = wrap_to_pi(yaw_log[k0:k1, cols[0]] - yaw_log[k0, cols[0]])
+            r.extra["swing_m"] = float(y.max() - y.min()) / 2.0
+            r.extra["heading_deg"] = math.degrees(float(heading.abs().max()))
+        if s.kind == "ramp":
+            window = int(round(2.0 / env.dt))
+            vx = vel_log[:k1, cols[0], 0]
+            alive_steps = int(alive[:k1, cols[0]].sum())
+            means = vx.unfold(0, window, 1).mean(dim=1) if len(vx) >= window else vx.mean().reshape(1)
+            r.extra["best_2s_backward"] = float(-means.min()) if alive_steps else 0.0
         if s.kind == "mode" and swivel_log is not None:
             rms = swivel_log[k0:k1, cols[0]].pow(2).mean(0).sqrt()
             mask = torch.tensor(env.cfg.modes.masks[s.mode], dtype=torch.bool)
@@ -285,6 +348,9 @@ def summary(results: list[ScenarioResult]) -> dict[str, float]:
         if rel:
             out[f"{key}_error"] = float(np.mean(rel))
     out["falls"] = float(sum(r.falls for r in results))
+    est = [r.extra["est_rms"] for r in track if "est_rms" in r.extra]
+    if est:
+        out["estimator_rms"] = float(np.mean(est))
     return out
 
 
@@ -306,6 +372,30 @@ def verdict(results: list[ScenarioResult], task: str | None = None) -> list[tupl
     if "random+pushes" in by:
         f = by["random+pushes"].falls
         checks.append(("random commands + pushes: 0 falls", f == 0, str(f)))
+    for r in results:  # the speed sweep (scenario names "vx +0.25", "vy -0.4", ...; not the 15 checks)
+        if r.kind != "track" or r.name in THRESHOLDS or r.name.startswith("vx top"):
+            continue
+        axis = r.name[:2]
+        value = abs(r.cmd[0 if axis == "vx" else 1])
+        bar = next((b for limit, b in SPEED_BARS.get(axis, ()) if value <= limit + 1e-9), None)
+        if bar is not None:
+            checks.append((f"{r.name}: |{axis} error| <= {bar}", r.err[axis] <= bar, f"{r.err[axis]:.3f}"))
+    if "vy slalom" in by:
+        r = by["vy slalom"]
+        lo, hi = SLALOM_SWING
+        swing, heading = r.extra["swing_m"], r.extra["heading_deg"]
+        checks.append((f"vy slalom: lateral swing {lo}-{hi} m", lo <= swing <= hi and not r.falls, f"{swing:.2f} m"))
+        checks.append((f"vy slalom: heading change < {SLALOM_HEADING_DEG} deg", heading < SLALOM_HEADING_DEG,
+                       f"{heading:.0f} deg"))  # fmt: skip
+    if "fig9 ramp" in by:
+        best = by["fig9 ramp"].extra["best_2s_backward"]
+        checks.append((f"fig9 ramp: best 2-s backward speed >= {RAMP_BEST_2S} m/s", best >= RAMP_BEST_2S,
+                       f"{best:.2f} m/s"))  # fmt: skip
+    est = [r.extra["est_rms"] for r in results if r.kind == "track" and "est_rms" in r.extra]
+    if est:
+        worst = max(est)
+        checks.append((f"estimator RMS error <= {ESTIMATOR_RMS} m/s (worst flat scenario)", worst <= ESTIMATOR_RMS,
+                       f"{worst:.3f}"))  # fmt: skip
     for mode in ("front_wheel", "rear_wheel"):
         r = by.get(f"mode {mode}")
         if r is None:
@@ -343,6 +433,19 @@ def _rng_kept():
     np.random.set_state(np_state)
 
 
+def actor_estimator(actor):
+    """The training actor's velocity estimate (TensorDict obs -> (n, 3)), or None without an estimator."""
+    return actor.estimate if getattr(actor, "estimator", None) is not None else None
+
+
+def exported_estimator(module):
+    """An exported TorchScript policy's `estimate` (obs -> (n, 3)), or None where it has none."""
+    if not hasattr(module, "estimate"):
+        return None
+    probe = module.estimate(torch.zeros(1, int(module.obs_dim)))
+    return (lambda obs: module.estimate(obs["policy"])) if probe.shape[-1] == 3 else None
+
+
 class DeterministicEval:
     """The periodic evaluation inside train.py: a small env built once, the quick scenarios."""
 
@@ -360,7 +463,11 @@ class DeterministicEval:
     def _run(self, actor, was_training: bool) -> dict[str, float]:
         try:
             device = next(actor.parameters()).device
-            results = run_scenarios(self.env, lambda obs: actor(obs.to(device)), self.scenarios)
+            est = actor_estimator(actor)
+            results = run_scenarios(
+                self.env, lambda obs: actor(obs.to(device)), self.scenarios,
+                estimator=(lambda obs: est(obs.to(device))) if est is not None else None,
+            )  # fmt: skip
         finally:
             actor.train(was_training)
         return summary(results)
@@ -393,7 +500,9 @@ def load_exported(path: Path, task_arg: str | None):
             "export.py",
             str(err),
         ) from None
-    return exp.task, exp.spec, exp.env_cfg, (lambda obs: module(obs["policy"])), f"{file}", exp.obs_dim
+    policy = lambda obs: module(obs["policy"])  # noqa: E731
+    policy.estimate = exported_estimator(module)
+    return exp.task, exp.spec, exp.env_cfg, policy, f"{file}", exp.obs_dim
 
 
 def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
@@ -435,6 +544,7 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
             probe.close()
             stochastic = bool(args.stochastic)
             policy = lambda obs: actor(obs, stochastic_output=stochastic)  # noqa: E731
+            policy.estimate = actor_estimator(actor)
             label = f"{sel.ckpt_path}" + (" (stochastic)" if stochastic else "")
     scenarios = applicable(SCENARIO_SETS[args.scenarios], spec.env_class, env_cfg)
     env = spec.env_class(eval_env_cfg(env_cfg, scenarios))
@@ -446,7 +556,7 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
     print(f"[{PROG}] {label}: task {task}, {len(scenarios)} scenarios on {env.num_envs} envs")
     t0 = time.time()
     try:
-        results = run_scenarios(env, policy, scenarios)
+        results = run_scenarios(env, policy, scenarios, estimator=getattr(policy, "estimate", None))
     finally:
         env.close()
     print(format_table(results))

@@ -45,11 +45,13 @@ ONNX_INPUT, ONNX_OUTPUT = "obs", "actions"
 
 
 class DeployedPolicy(nn.Module):
-    """Observation normaliser + actor MLP (+ gait prior) + deterministic head, for TorchScript and ONNX.
+    """Observation normaliser + actor MLP (+ velocity estimator) (+ gait prior) + deterministic
+    head, for TorchScript and ONNX.
 
-    Computes exactly what rsl_rl's MLPModel computes in its deterministic forward on
-    the concatenated policy observation: ((obs - mean) / (std + eps)) -> MLP -> mean.
-    """
+    Computes exactly what the training actor computes in its deterministic forward on the
+    concatenated policy observation: x = (obs - mean) / (std + eps); with an estimator,
+    the MLP reads x's kept columns and the estimate, else x; + prior(obs) -> head. The
+    TorchScript file also has `estimate(obs)`: the estimator's trunk velocity (m/s)."""
 
     def __init__(self, actor: nn.Module):
         super().__init__()
@@ -67,17 +69,31 @@ class DeployedPolicy(nn.Module):
         self.head = dist.as_deterministic_output_module() if dist is not None else nn.Identity()
         self.obs_dim = dim
         self.prior = copy.deepcopy(actor.prior) if hasattr(actor, "prior") else None
+        estimator = getattr(actor, "estimator", None)
+        self.estimator = copy.deepcopy(estimator) if estimator is not None else None
+        columns = actor.mlp_columns.clone() if estimator is not None else torch.zeros(0, dtype=torch.long)
+        self.register_buffer("mlp_columns", columns)
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        mean = self.mlp((obs - self.obs_mean) / self.obs_denom)
+        x = (obs - self.obs_mean) / self.obs_denom
+        if self.estimator is not None:
+            x = torch.cat([x[:, self.mlp_columns], self.estimator(x)], dim=-1)
+        mean = self.mlp(x)
         if self.prior is not None:
             mean = mean + self.prior(obs)
         return self.head(mean)
 
+    @torch.jit.export
+    def estimate(self, obs: torch.Tensor) -> torch.Tensor:
+        """The velocity estimator's output (batch, 3): trunk-frame vx, vy, vz in m/s (empty without one)."""
+        if self.estimator is not None:
+            return self.estimator((obs - self.obs_mean) / self.obs_denom)
+        return torch.zeros(obs.shape[0], 0)
+
 
 def build_actor(env, train_cfg, device: str = "cpu") -> nn.Module:
     """The training actor (rsl_rl model named in the train config) for `env`'s observations."""
-    cfg = train_cfg.to_rsl_rl(env.actor_prior())
+    cfg = train_cfg.for_env(env)
     actor_class, actor_cfg = resolve_class(cfg["actor"])
     obs = env.get_observations().to(device)
     return actor_class(obs, cfg["obs_groups"], "actor", env.num_actions, **actor_cfg).to(device)
@@ -129,7 +145,21 @@ def gait_clock(env) -> dict:
     }
 
 
-def policy_metadata(env, task: str) -> dict:
+def estimator_spec(actor: nn.Module | None) -> dict:
+    """{"estimator": ...} for an actor with a velocity estimator (inside the network), else {}."""
+    if actor is None or getattr(actor, "estimator", None) is None:
+        return {}
+    return {
+        "estimator": {
+            "output": "base_lin_vel",
+            "frame": "trunk, m/s",
+            "input": "the whole policy observation, normalised; the actor's MLP reads its output",
+            "note": "inside policy.pt / policy.onnx: the robot side feeds the observation as for any policy",
+        }
+    }
+
+
+def policy_metadata(env, task: str, actor: nn.Module | None = None) -> dict:
     """The deployment description (format_version 1), read from the env and its model."""
     model, cfg = env.model, env.cfg
     act = _actuator_of_joint(model)
@@ -182,6 +212,7 @@ def policy_metadata(env, task: str) -> dict:
         "propulsion_modes": propulsion_modes(env),
         **gait_clock(env),
         **({"history": env.history_spec()} if getattr(env, "history_spec", lambda: None)() else {}),
+        **estimator_spec(actor),
         "files": {"onnx": "policy.onnx", "torchscript": "policy.pt"},
         "onnx": {"input": ONNX_INPUT, "output": ONNX_OUTPUT},
     }
@@ -333,7 +364,7 @@ def export(args: argparse.Namespace, default_log_root: Path | None) -> int:
     try:
         actor = load_actor(env, sel.train_cfg, sel.ckpt, sel.ckpt_path)
         out = Path(args.out) if args.out else sel.run_dir / "exported"
-        meta = policy_metadata(env, sel.task)
+        meta = policy_metadata(env, sel.task, actor)
         paths = export_policy(actor, meta, out)
         # The run's configs travel with the export: play/evaluate rebuild the task from them.
         from legged_casters.config import dump_yaml
