@@ -114,12 +114,12 @@ def resolve_device(device: str | None, backend: str) -> str:
 
 
 def limit_cpu_threads(device: str, threads: int | None = None) -> None:
-    """One torch thread on a CPU device unless told otherwise. On the 2-core machines,
-    torch's OpenMP threads spin against the simulator's rollout threads and any other
-    load: go2_flat iterations took 31 s with 2 threads and 5 s with 1 (see README)."""
-    n = threads or (1 if str(device).startswith("cpu") else None)
-    if n:
-        torch.set_num_threads(n)
+    """`threads` torch intra-op threads, else torch's default (one per core). The env step
+    runs on one torch thread whatever this says (LeggedEnv.step: the simulator's thread pool
+    owns the cores then); the PPO update gets them all (2 threads: 1.2 s instead of 2.3 s
+    per update on 2 cores, scripts/bench_train.py)."""
+    if threads:
+        torch.set_num_threads(threads)
 
 
 # --- log folders and runs ------------------------------------------------------------------

@@ -155,8 +155,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--torch_threads",
         type=int,
-        help="torch intra-op threads (default on a CPU device: 1, measured 6x faster than 2 next to the "
-        "simulator's thread pool on 2 cores; on CUDA torch's default)",
+        help="torch intra-op threads (default: torch's, one per core; the env step always runs on one, "
+        "next to the simulator's thread pool)",
     )
     p.add_argument(
         "--eval_every",
@@ -386,7 +386,7 @@ def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Pa
         f"[{PROG}] task {task}: {env.num_envs} envs on the {env.backend_kind} backend, device {device}, "
         f"obs {env.observation_dims()}, control dt {env.dt:.3f} s (env built in {time.time() - t0:.1f} s)"
     )
-    rsl_cfg = train_cfg.to_rsl_rl(env.actor_prior())
+    rsl_cfg = train_cfg.for_env(env)
     rsl_cfg["run_name"] = train_cfg.run_name
     log_dir = str(run_dir) if rank == 0 else None
     evaluator = None
