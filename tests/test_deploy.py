@@ -466,6 +466,27 @@ def test_robot_clock_jump_reanchors_and_frozen_clock_gives_damping(tmp_path, rea
         b.stop()
 
 
+def test_a_robot_clock_one_to_two_periods_back_latches_a_stale_state_fault(tmp_path, realtime):
+    """docs/deploy.md, Clock: a 50 Hz robot clock that steps back 1.5 periods is not taken
+    for a restart (that needs more than two); no state reaches the next deadline within
+    the staleness limit + one period, and the stopped-clock rule latches STALE_STATE while
+    the states keep arriving (a small state age in the status)."""
+    rec = Recorder()
+    b = _bridge(tmp_path, rec, max_state_age=None)  # the default, 1.5 control periods
+    b.start()
+    robot = FakeRobot(b.on_state)
+    try:
+        assert wait_for(lambda: b.state is P.BridgeState.RUNNING, 2.0)
+        robot.stamp_offset = -1.5 * DT
+        assert wait_for(lambda: b.state is P.BridgeState.DAMPING, 0.5) and b.fault is P.Fault.STALE_STATE
+        n = b.received_state
+        time.sleep(0.1)
+        assert b.received_state >= n + 3 and b.status().state_age_ms < 2 * DT * 1e3
+    finally:
+        robot.stop()
+        b.stop()
+
+
 @pytest.mark.parametrize("backend", ["onnx", "torchscript"])
 def test_targets_clipped_and_nonfinite_policy_output_never_published(tmp_path, realtime, backend):
     rec = Recorder()
