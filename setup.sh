@@ -52,6 +52,11 @@ fi
 if [ "$task" = unitree ]; then
   # CycloneDDS for Python 0.10.2 (the SDK's pin) has no wheel for this Python: it builds
   # against the C library 0.10.x, which Debian/Ubuntu package as cyclonedds-dev.
+  case "${CYCLONEDDS_HOME:-/}" in
+    /*) ;;
+    *) echo "[setup] CYCLONEDDS_HOME must be an absolute path (pip builds cyclonedds in a temporary" \
+            "folder), got '$CYCLONEDDS_HOME'" >&2; exit 1 ;;
+  esac
   if [ -z "${CYCLONEDDS_HOME:-}" ] && [ ! -f /usr/include/dds/dds.h ]; then
     if command -v apt-get >/dev/null 2>&1 && [ "$(id -u)" = 0 ]; then
       echo "[setup] installing the CycloneDDS C library (apt-get install cyclonedds-dev)"
@@ -65,8 +70,10 @@ if [ "$task" = unitree ]; then
   if [ -z "${CYCLONEDDS_HOME:-}" ]; then
     # Debian installs the library under lib/<multiarch>; the Python package's build looks
     # in <prefix>/lib and <prefix>/include, so give it a prefix of links.
+    # The path must be absolute: pip builds cyclonedds in a temporary folder, where a
+    # relative CYCLONEDDS_HOME (such as .venv/...) points nowhere.
     libdir=$(dirname "$(find /usr/lib /usr/lib64 -name 'libddsc.so' 2>/dev/null | head -n 1)")
-    CYCLONEDDS_HOME="$VENV/cyclonedds-prefix"
+    CYCLONEDDS_HOME="$(cd "$VENV" && pwd)/cyclonedds-prefix"
     mkdir -p "$CYCLONEDDS_HOME"
     ln -sfn /usr/include "$CYCLONEDDS_HOME/include"
     ln -sfn "$libdir" "$CYCLONEDDS_HOME/lib"

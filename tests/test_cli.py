@@ -388,6 +388,13 @@ def test_play_flags_are_checked_before_the_simulation(no_simulation, tmp_path, c
     assert "no such file" in capsys.readouterr().err
     assert play.main([*argv, "--policy", "zero", "--set", "rewards.nope.x=1"]) == common.EXIT_USAGE
     assert "unknown config field" in capsys.readouterr().err
+    assert play.main([*argv, "--policy", "zero", "--mode", "four_wheel"]) == common.EXIT_USAGE
+    assert "--mode needs a task with propulsion modes; go2_flat has none" in capsys.readouterr().err
+    caster = ["--task", "caster_omni", "--log_root", str(tmp_path), "--headless", "--policy", "zero"]
+    assert play.main([*caster, "--mode", "sideways"]) == common.EXIT_USAGE
+    assert "known: four_wheel, front_wheel, rear_wheel" in capsys.readouterr().err
+    assert play.main([*caster, "--profile", "modes", "--mode", "rear_wheel"]) == common.EXIT_USAGE
+    assert "leave --mode out" in capsys.readouterr().err
 
 
 def test_default_task_prefers_caster_omni():

@@ -210,6 +210,28 @@ def test_a_far_future_seq_cannot_lock_the_stream_out():
     assert f.last_seq == 11 + P.SequenceFilter.WINDOW
 
 
+def test_reanchor_accepts_the_next_message_whatever_its_seq():
+    """A message inside the window that ran ahead of the real stream makes it out of order;
+    reanchor() takes the next message of the epoch as the new anchor, once, and a replaced
+    epoch stays rejected."""
+    f = P.SequenceFilter(window=10)
+    f.check(P.Header(epoch=1, seq=5))
+    f.check(P.Header(epoch=1, seq=15))  # ran ahead, within the window
+    for seq in (6, 7):
+        with pytest.raises(P.ProtocolError, match="out_of_order"):
+            f.check(P.Header(epoch=1, seq=seq))
+    f.reanchor()
+    f.check(P.Header(epoch=1, seq=8))  # behind the anchor: accepted after the re-anchor
+    f.check(P.Header(epoch=1, seq=9))
+    with pytest.raises(P.ProtocolError, match="out_of_order"):
+        f.check(P.Header(epoch=1, seq=9))  # once only: replays are rejected again
+    f.check(P.Header(epoch=2, seq=1000))  # a new epoch may start at any seq
+    f.reanchor()
+    with pytest.raises(P.ProtocolError, match="replaced"):
+        f.check(P.Header(epoch=1, seq=10))
+    f.check(P.Header(epoch=2, seq=3))
+
+
 def test_zenoh_config_file_pass_through(tmp_path):
     port = free_port()
     f = tmp_path / "zenoh.json5"
@@ -444,6 +466,27 @@ def test_robot_clock_jump_reanchors_and_frozen_clock_gives_damping(tmp_path, rea
         b.stop()
 
 
+def test_a_robot_clock_one_to_two_periods_back_latches_a_stale_state_fault(tmp_path, realtime):
+    """docs/deploy.md, Clock: a 50 Hz robot clock that steps back 1.5 periods is not taken
+    for a restart (that needs more than two); no state reaches the next deadline within
+    the staleness limit + one period, and the stopped-clock rule latches STALE_STATE while
+    the states keep arriving (a small state age in the status)."""
+    rec = Recorder()
+    b = _bridge(tmp_path, rec, max_state_age=None)  # the default, 1.5 control periods
+    b.start()
+    robot = FakeRobot(b.on_state)
+    try:
+        assert wait_for(lambda: b.state is P.BridgeState.RUNNING, 2.0)
+        robot.stamp_offset = -1.5 * DT
+        assert wait_for(lambda: b.state is P.BridgeState.DAMPING, 0.5) and b.fault is P.Fault.STALE_STATE
+        n = b.received_state
+        time.sleep(0.1)
+        assert b.received_state >= n + 3 and b.status().state_age_ms < 2 * DT * 1e3
+    finally:
+        robot.stop()
+        b.stop()
+
+
 @pytest.mark.parametrize("backend", ["onnx", "torchscript"])
 def test_targets_clipped_and_nonfinite_policy_output_never_published(tmp_path, realtime, backend):
     rec = Recorder()
@@ -537,6 +580,50 @@ def test_stop_latches_until_reset(tmp_path, realtime):
         assert wait_for(lambda: b.state is P.BridgeState.RUNNING, 2.0)
         modes = rec.modes()
         assert P.CommandMode.STANDUP in modes[n_stop:]  # reset stands up again before the policy runs
+    finally:
+        robot.stop()
+        b.stop()
+
+
+def test_one_state_ahead_of_the_stream_cannot_lock_the_robot_out(tmp_path, realtime):
+    """Issue 22: one valid state whose seq is ahead of the real stream. Beyond the bridge's
+    window (+1000, +65536) it is rejected and the policy runs on. Inside the window it is
+    accepted, the real states behind it are out of order and the bridge latches a
+    stale-state fault; an operator reset re-anchors the sequence and the robot stands up
+    and runs again at once, not only when the real stream has passed the forged seq."""
+    rec = Recorder()
+    b = _bridge(tmp_path, rec, max_state_age=0.1)
+    assert b.state_filter.window == 200  # a 1 kHz stream in twice the 100 ms limit
+    ops = P.Sender()
+    b.start()
+    robot = FakeRobot(b.on_state)
+
+    def forged(jump: int) -> bytes:
+        s = robot.sender  # its seq is the next one: s.seq - 1 is the last state it sent
+        h = P.Header(s.epoch, s.seq - 1 + jump, time.monotonic_ns())
+        return P.RobotState([1.0, 0.0, 0.0, 0.0], [0.0] * 3, go2.default_joint_positions(), [0.0] * 12,
+                            header=h).encode()  # fmt: skip
+
+    try:
+        assert wait_for(lambda: b.state is P.BridgeState.RUNNING, 2.0)
+        for jump in (1000, 65536):
+            b.on_state(forged(jump))
+        n = b.policy_steps
+        time.sleep(0.3)
+        assert b.rejected["out_of_order"] == 2
+        assert b.state is P.BridgeState.RUNNING and b.policy_steps >= n + 10
+        b.on_state(forged(200))  # inside the window: 4 s of the 50 Hz stream is now "old"
+        assert wait_for(lambda: b.state is P.BridgeState.DAMPING, 1.0) and b.fault is P.Fault.STALE_STATE
+        assert b.rejected["out_of_order"] > 2
+        n_fault = len(rec.cmds)
+        b.on_operator(op(ops, flags=P.OP_RESET))
+        t_reset = time.monotonic()
+        assert wait_for(lambda: b.state is P.BridgeState.RUNNING, 2.0)
+        assert time.monotonic() - t_reset < 1.0  # the real stream would pass the forged seq only after 4 s
+        assert P.CommandMode.STANDUP in rec.modes()[n_fault:]
+        n = b.policy_steps
+        time.sleep(0.2)
+        assert b.state is P.BridgeState.RUNNING and b.policy_steps >= n + 5
     finally:
         robot.stop()
         b.stop()

@@ -221,6 +221,8 @@ def test_bridge_rebuilds_the_whole_observation_with_clock_and_history(tmp_path):
     bm = load_meta(tmp_path)
     assert bm.history_length == 3 and bm.history_terms[0] == "ang_vel"
     builder = ObservationBuilder(bm)
+    width = e.history.shape[2]
+    assert [t[0] for t in bm.obs_terms][-2:] == ["proprio_history", "gait_phase"]
     cmd = [0.6, -0.1, 0.2]
     e.set_commands(cmd)
     e.set_mode("front_wheel")
@@ -232,8 +234,51 @@ def test_bridge_rebuilds_the_whole_observation_with_clock_and_history(tmp_path):
         )
         built = builder.build(state, cmd, [0, 0, 1, 1], e.actions[0].numpy(), step=k)
         assert np.allclose(built, obs["policy"][0].numpy(), atol=1e-4), k
+        history = built[-3 * width - 2 : -2].reshape(3, width)  # proprio_history, then gait_phase
+        assert (np.abs(history).sum(axis=1) > 0).tolist() == [j < k for j in range(3)], k  # zeros before step 0
         obs, *_ = e.step(torch.randn(1, 12) * 0.3)
     e.close()
+
+
+def test_play_feeds_the_policy_the_observation_the_bridge_builds(tmp_path, monkeypatch, capsys):
+    """Issue 22: the history right after a reset, and at a command change. From play.py's
+    first step, over the steps profile's change from standing to -0.6 m/s, robot 0's
+    observation equals what the bridge builds from the same state: proprio_history at step
+    k holds steps k-1, k-2, ... (all zeros at k = 0, step 0 in the newest slot at k = 1),
+    as in training. And without --mode a task with modes plays four_wheel, not a draw."""
+    from legged_casters.tools import play
+
+    seen = []
+
+    def make_policy(src, env):
+        (tmp_path / "policy.yaml").write_text(export.metadata_yaml(export.policy_metadata(env, TASK)))
+        meta = load_meta(tmp_path)
+        assert meta.history_length == 10
+        builder = ObservationBuilder(meta)
+        start = env.policy_obs_slices()["proprio_history"][0]
+        width = env.history.shape[2]
+
+        def policy(obs):
+            k = len(seen)
+            state = P.RobotState(env.base_quat[0].tolist(), env.base_ang_vel[0].tolist(),
+                                 env.joint_pos[0].tolist(), env.joint_vel[0].tolist())  # fmt: skip
+            built = builder.build(state, env.commands[0].tolist(), env.mode_mask[0].tolist(), env.actions[0], step=k)
+            got = obs["policy"][0].numpy()
+            seen.append((got[start : start + width].copy(), env.commands[0, 0].item(), env.mode_mask.tolist()))
+            assert np.allclose(built, got, atol=1e-4), f"step {k}: {np.flatnonzero(~np.isclose(built, got, atol=1e-4))}"
+            return torch.zeros(env.num_envs, env.num_actions)
+
+        return policy
+
+    monkeypatch.setattr(play, "_make_policy", make_policy)
+    argv = ["--task", TASK, "--policy", "zero", "--profile", "steps", "--duration", "0.5", "--headless"]
+    argv += ["--no_video", "--num_envs", "3", "--out", str(tmp_path / "play"), "--set", "noise.enabled=false"]
+    assert play.main(argv) == 0, capsys.readouterr().err
+    newest = [h for h, _, _ in seen]
+    assert len(seen) == 25 and not newest[0].any() and newest[1].any()
+    vx = [c for _, c, _ in seen]
+    assert vx[4] == 0.0 and vx[5] == pytest.approx(-0.6)  # the change is inside the compared steps
+    assert all(m == [[0.0] * 4] * 3 for _, _, m in seen)  # four_wheel on every robot
 
 
 def test_single_axis_commands_keep_one_component():

@@ -28,7 +28,10 @@ policy.pt). The control loop and its safety rules (docs/deploy.md has the detail
   reset goes back to WAITING, and the next fresh state starts a new stand-up.
 * Every received payload is decoded and checked (length, magic, version, finite
   values, ranges, sequence order); a bad one is dropped and counted by reason in
-  the status, and never triggers a command.
+  the status, and never triggers a command. A state may skip at most
+  ``state_window`` seqs (60 with the default staleness limit); entering WAITING (an
+  operator reset) re-anchors the sequence, so the next valid state is accepted
+  whatever its seq.
 """
 
 from __future__ import annotations
@@ -36,6 +39,7 @@ from __future__ import annotations
 import argparse
 import collections
 import dataclasses
+import math
 import sys
 import threading
 import time
@@ -47,6 +51,18 @@ import numpy as np
 from legged_casters.deploy import protocol as P
 from legged_casters.deploy import transport
 from legged_casters.deploy.policy import ObservationBuilder, PolicyFormatError, PolicyMeta, PolicyRunner, load_meta
+
+MAX_STATE_RATE_HZ = 1000.0
+"""The fastest robot state stream the bridge expects (a Go2 publishes LowState at 500 Hz)."""
+
+
+def state_window(max_state_age: float) -> int:
+    """How many seqs a robot state may skip: as many as a MAX_STATE_RATE_HZ stream sends in
+    twice the staleness limit (60 with the default 30 ms). A real stream that skips more
+    sent nothing for longer than the limit, so the bridge has latched STALE_STATE already
+    and its reset re-anchors the sequence; a single message that jumps further ahead is
+    rejected and changes nothing."""
+    return max(1, math.ceil(2.0 * max_state_age * MAX_STATE_RATE_HZ))
 
 
 @dataclasses.dataclass
@@ -119,7 +135,7 @@ class Bridge:
         self._cv = threading.Condition()
         self._running = False
         self._thread: threading.Thread | None = None
-        self.state_filter = P.SequenceFilter()
+        self.state_filter = P.SequenceFilter(window=state_window(self.max_state_age))
         self.operator_filter = P.SequenceFilter()
         self.cmd_sender = P.Sender()
         self.status_sender = P.Sender()
@@ -261,6 +277,9 @@ class Bridge:
             self._next_damping = time.monotonic() + self.dt
             self.rate.reset()
         if state is P.BridgeState.WAITING:
+            # The next valid state is accepted whatever its seq: one message that moved the
+            # sequence ahead of the real stream cannot keep the robot from standing up again.
+            self.state_filter.reanchor()
             self._waiting_since = time.monotonic()
             self.next_stamp = None
             self.rate.reset()

@@ -28,9 +28,10 @@ velocity target ``dq`` to the command, so that a wheel runs as a velocity servo
 (kp 0, dq target, kd), as on a Go2-W LowCmd. Version 1 had 12 joints and no ``dq``.
 
 Decoding checks the exact length, magic, version and type, that every float is
-finite and that the values are in range; a failure raises :class:`ProtocolError`
-whose ``reason`` is one of :data:`REJECT_REASONS`. :class:`SequenceFilter` rejects
-replayed and out-of-order messages. Nothing here touches zenoh.
+finite and that the values are in range (pad bytes are written as zeros and never
+read); a failure raises :class:`ProtocolError` whose ``reason`` is one of
+:data:`REJECT_REASONS`. :class:`SequenceFilter` rejects replayed and out-of-order
+messages. Nothing here touches zenoh.
 """
 
 from __future__ import annotations
@@ -447,32 +448,45 @@ class SequenceFilter:
 
     A message from the current epoch must have a larger seq than the last accepted one
     (a replay or a late, reordered message is rejected). A new epoch (the sender
-    restarted) is accepted and replaces the current one; messages from an epoch seen
-    before and replaced are rejected for good, so a replay of an old session cannot
-    take over.
+    restarted) is accepted whatever its first seq and replaces the current one;
+    messages from an epoch seen before and replaced are rejected for good, so a replay
+    of an old session cannot take over.
 
     Within an epoch a message may skip at most `window` sequence numbers (lost
-    messages); one that jumps further ahead is rejected, so a single corrupt or forged
-    message with a far-future seq cannot lock the real stream out. The default window,
-    65536 messages, is over two minutes of a 500 Hz stream: a sender that lost more than
-    that restarts (a new epoch)."""
+    messages); one that jumps further ahead is rejected and changes nothing. A message
+    that jumps ahead by up to `window` is accepted, and the real stream behind it is then
+    out of order until it passes that seq: the receiver decides when to give up on the
+    old anchor with :meth:`reanchor` (the bridge does on an operator reset, and limits
+    the state window to what the staleness limit allows). The default window, 65536
+    messages, is over two minutes of a 500 Hz stream."""
 
     WINDOW = 1 << 16
 
     def __init__(self, max_retired: int = 64, window: int = WINDOW):
+        if window < 1:
+            raise ValueError(f"window must be >= 1, got {window}")
         self.epoch: int | None = None
         self.last_seq = -1
         self._retired: list[int] = []
         self._max_retired = max_retired
         self.window = window
+        self._anchor = False
+
+    def reanchor(self) -> None:
+        """Accept the next message of the current epoch whatever its seq (ahead, behind or
+        equal), and count on from it. Replaced epochs stay rejected."""
+        self._anchor = True
 
     def check(self, h: Header) -> None:
         """Raise ProtocolError('out_of_order') or record h as the newest message."""
         if h.epoch == self.epoch:
-            if h.seq <= self.last_seq:
-                raise ProtocolError("out_of_order", f"seq {h.seq} after {self.last_seq}")
-            if h.seq - self.last_seq > self.window:
-                raise ProtocolError("out_of_order", f"seq {h.seq} jumps more than {self.window} past {self.last_seq}")
+            if not self._anchor:
+                if h.seq <= self.last_seq:
+                    raise ProtocolError("out_of_order", f"seq {h.seq} after {self.last_seq}")
+                if h.seq - self.last_seq > self.window:
+                    raise ProtocolError(
+                        "out_of_order", f"seq {h.seq} jumps more than {self.window} past {self.last_seq}"
+                    )
         else:
             if h.epoch in self._retired:
                 raise ProtocolError("out_of_order", f"epoch {h.epoch:#x} was replaced by a newer sender")
@@ -481,6 +495,7 @@ class SequenceFilter:
                 del self._retired[: -self._max_retired]
             self.epoch = h.epoch
         self.last_seq = h.seq
+        self._anchor = False
 
 
 class Sender:

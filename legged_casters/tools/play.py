@@ -4,6 +4,10 @@
     python play.py --profile steps --duration 10        # stand, -0.6 m/s, +0.6 m/s (paper Fig. 6)
     python play.py --policy logs/.../exported/policy.onnx
     python play.py --task caster_omni --policy zero --profile modes
+    python play.py --profile constant --mode front_wheel --cmd 0.5 0 0
+
+A task with propulsion modes runs four_wheel (all casters driven) unless --mode says
+otherwise; --profile modes steps through 4WD -> FWD -> RWD instead.
 
 Headless (no DISPLAY, or --headless): an mp4 from MuJoCo's offscreen renderer (EGL,
 else OSMesa) following robot 0, and PNG plots of robot 0: commanded vs measured vx, vy,
@@ -33,6 +37,10 @@ PROFILES = ("constant", "steps", "slalom", "modes")
 DEFAULT_DURATION = {"constant": 8.0, "steps": 10.0, "slalom": 12.0, "modes": 12.0}
 MODE_SEQUENCE = (("4WD", (0, 0, 0, 0)), ("FWD", (0, 0, 1, 1)), ("RWD", (1, 1, 0, 0)))
 """4WD -> FWD -> RWD: mode masks (FL, FR, RL, RR), 1 = that caster is not driven."""
+DEFAULT_MODE = "four_wheel"
+"""The propulsion mode of the other profiles on a task with modes (--mode changes it)."""
+COMMAND_TERMS = ("commands", "mode_mask")
+"""Observation terms that follow the operator: re-read when the command or the mode changes."""
 
 
 # --- command profiles ----------------------------------------------------------------------------
@@ -41,21 +49,23 @@ class Profile:
     name: str
     duration: float
     cmd: tuple[float, float, float]
+    mode: tuple[str, tuple[int, ...]] | None = None
+    """(name, mask) of every profile but "modes"; None: the task has no propulsion modes."""
 
     def at(self, t: float) -> tuple[tuple[float, float, float], tuple[str, tuple[int, ...]] | None]:
         """(vx, vy, wz) command and (mode name, mask) or None at time t."""
         vx, vy, wz = self.cmd
         if self.name == "constant":
-            return (vx, vy, wz), None
+            return (vx, vy, wz), self.mode
         if self.name == "steps":  # paper Fig. 6: stand ~2 s, backward -0.6 m/s, forward +0.6 m/s
             stand = min(2.0, self.duration / 5)
             if t < stand:
-                return (0.0, 0.0, 0.0), None
+                return (0.0, 0.0, 0.0), self.mode
             half = stand + (self.duration - stand) / 2
-            return ((-0.6 if t < half else 0.6), 0.0, 0.0), None
+            return ((-0.6 if t < half else 0.6), 0.0, 0.0), self.mode
         if self.name == "slalom":  # forward with a lateral command that alternates every 2 s
             side = 1.0 if int(t // 2.0) % 2 == 0 else -1.0
-            return (vx, side * 0.4, 0.0), None
+            return (vx, side * 0.4, 0.0), self.mode
         if self.name == "modes":  # the same command through 4WD -> FWD -> RWD
             idx = min(int(t / (self.duration / len(MODE_SEQUENCE))), len(MODE_SEQUENCE) - 1)
             return (vx, vy, wz), MODE_SEQUENCE[idx]
@@ -289,6 +299,11 @@ def build_parser() -> argparse.ArgumentParser:
         metavar=("VX", "VY", "WZ"),
         help="command of the constant profile (vx also for slalom and modes)",
     )
+    p.add_argument(
+        "--mode",
+        help=f"propulsion mode of a task with modes, e.g. front_wheel (default {DEFAULT_MODE}; "
+        "not with --profile modes, which steps through 4WD -> FWD -> RWD)",
+    )
     p.add_argument("--sim_backend", choices=("cpu", "warp"), default="cpu", help="play runs on the CPU by default")
     p.add_argument("--headless", action="store_true", help="video + plots even with a display")
     p.add_argument("--viewer", action="store_true", help="MuJoCo's interactive viewer (needs a display)")
@@ -323,13 +338,14 @@ def play(args: argparse.Namespace, default_log_root: Path | None) -> int:
     if args.profile == "modes" and not hasattr(src.spec.env_class, "set_mode"):
         raise UsageError(f"--profile modes needs a task with propulsion modes (set_mode); {src.task} has none")
     env_cfg = common.eval_env_cfg(src.env_cfg, args.num_envs, args.env_set, args.sim_backend)
+    mode = _fixed_mode(args, src, env_cfg)
     gl_backend = None
     if headless and not args.no_video:
         gl_backend, errors = render.probe_gl_backend()
         if gl_backend is None:
             detail = "; ".join(f"{k}: {v}" for k, v in errors.items())
             raise UsageError(f"{render.INSTALL_HINT} ({detail})")
-    profile = Profile(args.profile, args.duration or DEFAULT_DURATION[args.profile], tuple(args.cmd))
+    profile = Profile(args.profile, args.duration or DEFAULT_DURATION[args.profile], tuple(args.cmd), mode)
     _warn_untrained_commands(profile, src)
 
     # --- simulation --------------------------------------------------------------------------------
@@ -340,6 +356,43 @@ def play(args: argparse.Namespace, default_log_root: Path | None) -> int:
         return _run(args, src, env, policy, profile, headless, gl_backend)
     finally:
         env.close()
+
+
+def _fixed_mode(args: argparse.Namespace, src: PolicySource, env_cfg) -> tuple[str, tuple[int, ...]] | None:
+    """(name, mask) of the propulsion mode the profile runs: --mode, else four_wheel, on a
+    task with modes (else the env would draw one at random for each robot); None for a
+    task without modes and for --profile modes."""
+    masks = getattr(getattr(env_cfg, "modes", None), "masks", None)
+    if not masks or not hasattr(src.spec.env_class, "set_mode"):
+        if args.mode is not None:
+            raise UsageError(f"--mode needs a task with propulsion modes; {src.task} has none")
+        return None
+    if args.profile == "modes":
+        if args.mode is not None:
+            raise UsageError("--profile modes steps through 4WD -> FWD -> RWD itself: leave --mode out")
+        return None
+    name = args.mode or DEFAULT_MODE
+    if name not in masks:
+        raise UsageError(f"--mode {name!r} is not a propulsion mode of {src.task}; known: {', '.join(masks)}")
+    return name, tuple(int(x) for x in masks[name])
+
+
+def refresh_commands(env, obs):
+    """`obs` with its command terms (COMMAND_TERMS) re-read from the env after set_commands /
+    set_mode, the rest as the env built it. env.compute_observations() would re-read
+    proprio_history as well, which the env has already advanced with this step's values
+    (it records them right after building each observation): the policy would then see
+    this step in the newest slot, where training and the bridge have the previous step
+    (zeros at the first)."""
+    obs = obs.clone()
+    clip = env.cfg.observations.clip
+    for group, layout in env.obs_layout.items():
+        start = 0
+        for term, dim, scale in layout:
+            if term in COMMAND_TERMS:
+                obs[group][:, start : start + dim] = (getattr(env, f"_obs_{term}")() * scale).clamp(-clip, clip)
+            start += dim
+    return obs
 
 
 def _warn_untrained_commands(profile: Profile, src: PolicySource) -> None:
@@ -378,9 +431,9 @@ def _run(args, src: PolicySource, env, policy, profile: Profile, headless: bool,
 
     cmd, mode = profile.at(0.0)
     _apply(env, cmd, mode)  # external commands first: the reset then keeps them
-    env.reset()
+    obs = env.reset()
     _apply(env, cmd, mode)
-    obs = env.compute_observations()
+    obs = refresh_commands(env, obs)  # the reset's observation: history zeros, as in training
 
     renderer = writer = viewer = None
     render_model = build.MODEL_FILES[env.cfg.robot]
@@ -417,7 +470,7 @@ def _run(args, src: PolicySource, env, policy, profile: Profile, headless: bool,
             if new_cmd != cmd or new_mode != mode or (mode is not None and reset_any):
                 cmd, mode = new_cmd, new_mode
                 _apply(env, cmd, mode)
-                obs = env.compute_observations()  # the policy sees the new command now
+                obs = refresh_commands(env, obs)  # the policy sees the new command now
             with torch.no_grad():
                 actions = policy(obs)
             obs, _, dones, _ = env.step(actions)
