@@ -1,4 +1,5 @@
-"""Actor models beyond rsl_rl's own: an MLP whose mean adds a fixed trajectory prior.
+"""Actor models beyond rsl_rl's own: an MLP whose mean adds a fixed trajectory prior,
+optionally fed by a velocity estimator.
 
 `PriorMLPModel` is rsl_rl's MLPModel with one change: a prior computed from the raw
 policy observation (the caster robot's skating prior `legged_casters.envs.gait.GaitPrior`
@@ -6,6 +7,11 @@ or the wheel robot's drive feedforward `legged_casters.envs.drive.DrivePrior`) i
 added to the MLP output before the Gaussian head. PPO therefore learns a residual
 around the prior, its exploration noise is centred on the prior's motion, and the
 deterministic actor (and its export) is prior + MLP: the robot side runs one network.
+
+With `estimator` (legged_casters.learning.estimator), the MLP reads the estimator's
+trunk-velocity estimate (detached) beside the normalised observation; with
+`actor_history: False` it reads only the current observation's terms (the estimator
+alone reads the proprioceptive history), which also makes the actor small.
 """
 
 from __future__ import annotations
@@ -17,6 +23,7 @@ from tensordict import TensorDict
 
 from legged_casters.envs.drive import DrivePrior
 from legged_casters.envs.gait import GaitPrior
+from legged_casters.learning.estimator import VelocityEstimator
 
 PRIORS = {"gait": GaitPrior, "drive": DrivePrior}
 """prior["kind"] -> module; a prior without a kind is the caster gait prior (older runs)."""
@@ -29,8 +36,39 @@ def make_prior(prior: dict) -> torch.nn.Module:
     return PRIORS[kind](prior["cfg"], prior["slices"], prior["action_scale"])
 
 
+class ColumnsMLPModel(MLPModel):
+    """rsl_rl's MLPModel whose MLP skips the observation columns [start, stop) of `drop`
+    (e.g. a critic that has the privileged state and no use for the actor's history)."""
+
+    def __init__(self, obs: TensorDict, obs_groups, obs_set: str, output_dim: int, drop: list[int], **kwargs):
+        self._drop = (int(drop[0]), int(drop[1]))
+        super().__init__(obs, obs_groups, obs_set, output_dim, **kwargs)
+        self.register_buffer("mlp_columns", self._mlp_columns(), persistent=False)
+
+    def _mlp_columns(self) -> torch.Tensor:
+        keep = torch.ones(self.obs_dim, dtype=torch.bool)
+        keep[self._drop[0] : self._drop[1]] = False
+        return keep.nonzero().flatten()
+
+    def _get_latent_dim(self) -> int:
+        return len(self._mlp_columns())
+
+    def get_latent(self, obs: TensorDict, masks=None, hidden_state=None) -> torch.Tensor:
+        return super().get_latent(obs, masks, hidden_state)[:, self.mlp_columns]
+
+
 class PriorMLPModel(MLPModel):
-    def __init__(self, obs: TensorDict, obs_groups, obs_set: str, output_dim: int, prior: dict, **kwargs):
+    """rsl_rl's MLPModel + a prior added to the mean (+ an optional velocity estimator).
+
+    `estimator`: {"hidden_dims": [...], "out_dim": 3, "actor_history": bool,
+    "history_slice": [start, stop]} (the proprio_history term's columns in the policy
+    observation; the MLP skips them when actor_history is false)."""
+
+    def __init__(
+        self, obs: TensorDict, obs_groups, obs_set: str, output_dim: int, prior: dict, estimator: dict | None = None,
+        **kwargs,
+    ):  # fmt: skip
+        self._estimator_cfg = estimator
         super().__init__(obs, obs_groups, obs_set, output_dim, **kwargs)
         if self.distribution is not None and self.distribution.input_dim != output_dim:
             raise ValueError(
@@ -39,6 +77,35 @@ class PriorMLPModel(MLPModel):
                 f"{type(self.distribution).__name__} with input {self.distribution.input_dim}"
             )
         self.prior = make_prior(prior)
+        self.estimator = None
+        if estimator is not None:
+            out_dim, activation = int(estimator.get("out_dim", 3)), kwargs.get("activation", "elu")
+            self.estimator = VelocityEstimator(self.obs_dim, out_dim, estimator["hidden_dims"], activation)
+            self.register_buffer("mlp_columns", self._mlp_columns(), persistent=False)
+
+    def _mlp_columns(self) -> torch.Tensor:
+        """Columns of the normalised observation the MLP reads (all unless the history is left to the estimator)."""
+        cfg = self._estimator_cfg
+        keep = torch.ones(self.obs_dim, dtype=torch.bool)
+        if cfg is not None and not cfg.get("actor_history", True):
+            start, stop = cfg["history_slice"]
+            keep[start:stop] = False
+        return keep.nonzero().flatten()
+
+    def _get_latent_dim(self) -> int:
+        if self._estimator_cfg is None:
+            return self.obs_dim
+        return len(self._mlp_columns()) + int(self._estimator_cfg.get("out_dim", 3))
+
+    def estimate(self, obs: TensorDict) -> torch.Tensor:
+        """The estimator's output (n, out_dim), m/s, from the policy observation groups."""
+        raw = torch.cat([obs[group] for group in self.obs_groups], dim=-1)
+        return self.estimator(self.obs_normalizer(raw))
+
+    def mlp_input(self, normalised: torch.Tensor) -> torch.Tensor:
+        if self.estimator is None:
+            return normalised
+        return torch.cat([normalised[:, self.mlp_columns], self.estimator(normalised).detach()], dim=-1)
 
     def as_jit(self):
         raise NotImplementedError("rsl_rl's JIT export would drop the prior: use export.py (DeployedPolicy)")
@@ -49,7 +116,7 @@ class PriorMLPModel(MLPModel):
     def forward(self, obs: TensorDict, masks=None, hidden_state=None, stochastic_output: bool = False) -> torch.Tensor:
         obs = unpad_trajectories(obs, masks) if masks is not None and not self.is_recurrent else obs
         raw = torch.cat([obs[group] for group in self.obs_groups], dim=-1)
-        mean = self.mlp(self.obs_normalizer(raw)) + self.prior(raw)
+        mean = self.mlp(self.mlp_input(self.obs_normalizer(raw))) + self.prior(raw)
         if self.distribution is not None:
             if stochastic_output:
                 self.distribution.update(mean)

@@ -1,0 +1,2 @@
+"""The learning extensions around rsl_rl, one idea per module: the actor with its prior and
+estimator (models), the concurrent velocity estimator and its PPO (estimator)."""

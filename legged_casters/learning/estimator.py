@@ -1,0 +1,86 @@
+"""A velocity estimator trained by regression next to PPO (concurrent state estimation).
+
+The actor cannot measure its trunk velocity, yet speed control needs it. Following the
+idea of Ji et al. (RA-L 2022, "Concurrent Training of a Control Policy and a State
+Estimator"), a small MLP inside the actor regresses the simulator's trunk linear
+velocity (trunk frame, m/s) from what the robot measures: the normalised policy
+observation, proprioceptive history included. The actor's MLP then reads the estimate
+(detached: PPO's gradient never reaches the estimator) beside the current observation.
+The estimator is part of the actor, so checkpoints, export (TorchScript / ONNX) and the
+deployment bridge carry it without anything new; the robot computes its own estimate.
+
+The regression target comes from the env as its own observation group (`TARGET_GROUP`),
+which only the estimator's loss reads. `EstimatorPPO` runs rsl_rl's PPO update, then
+`epochs` passes of Adam on the estimator over the same rollout, and reports the loss
+(Loss/estimator_mse in TensorBoard) and the estimate's RMS error (Loss/estimator_rms, m/s).
+"""
+
+from __future__ import annotations
+
+import torch
+from rsl_rl.algorithms import PPO
+from rsl_rl.modules import MLP
+
+TARGET_GROUP = "estimator_target"
+"""Observation group holding the estimator's regression target (base_lin_vel, trunk frame, m/s)."""
+
+
+class VelocityEstimator(torch.nn.Module):
+    """Normalised policy observation (n, obs_dim) -> trunk velocity estimate (n, out_dim)."""
+
+    def __init__(self, obs_dim: int, out_dim: int, hidden_dims: list[int], activation: str = "elu"):
+        super().__init__()
+        self.out_dim = int(out_dim)
+        self.net = MLP(obs_dim, out_dim, list(hidden_dims), activation)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(x)
+
+
+class EstimatorPPO(PPO):
+    """rsl_rl's PPO plus supervised epochs of the actor's estimator after each update."""
+
+    def __init__(
+        self,
+        *args,
+        estimator_learning_rate: float = 1e-3,
+        estimator_epochs: int = 2,
+        estimator_mini_batches: int = 4,
+        **kwargs,
+    ):
+        super().__init__(*args, **kwargs)
+        estimator = getattr(self._raw_actor, "estimator", None)
+        if estimator is None:
+            raise ValueError("EstimatorPPO needs an actor with an estimator (policy.estimator_hidden_dims)")
+        self.estimator_epochs = int(estimator_epochs)
+        self.estimator_mini_batches = int(estimator_mini_batches)
+        self.estimator_optimizer = torch.optim.Adam(estimator.parameters(), lr=estimator_learning_rate)
+
+    def update(self) -> dict[str, float]:
+        losses = super().update()  # leaves the rollout in storage (clear() only rewinds its cursor)
+        actor = self._raw_actor
+        total, count = 0.0, 0
+        for batch in self.storage.mini_batch_generator(self.estimator_mini_batches, self.estimator_epochs):
+            obs = batch.observations
+            estimate = actor.estimate(obs)
+            loss = torch.nn.functional.mse_loss(estimate, obs[TARGET_GROUP])
+            self.estimator_optimizer.zero_grad()
+            loss.backward()
+            self.estimator_optimizer.step()
+            total += loss.item()
+            count += 1
+        mse = total / max(count, 1)
+        losses["estimator_mse"] = mse
+        losses["estimator_rms"] = (mse * 3.0) ** 0.5 if count else 0.0  # per-sample RMS of the 3-vector error
+        return losses
+
+    def save(self) -> dict:
+        saved = super().save()
+        saved["estimator_optimizer_state_dict"] = self.estimator_optimizer.state_dict()
+        return saved
+
+    def load(self, loaded_dict: dict, load_cfg: dict | None, strict: bool) -> bool:
+        out = super().load(loaded_dict, load_cfg, strict)
+        if "estimator_optimizer_state_dict" in loaded_dict and (load_cfg is None or load_cfg.get("optimizer")):
+            self.estimator_optimizer.load_state_dict(loaded_dict["estimator_optimizer_state_dict"])
+        return out
