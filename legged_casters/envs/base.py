@@ -550,6 +550,25 @@ class LeggedEnv(VecEnv):
             groups[group] = torch.nan_to_num(obs, nan=0.0, posinf=clip, neginf=-clip).clamp(-clip, clip)
         return TensorDict(groups, batch_size=[self.num_envs], device=self.device)
 
+    COMMAND_TERMS: tuple[str, ...] = ("commands", "mode_mask")
+    """Observation terms an operator sets (set_commands, set_mode), not the robot's state."""
+
+    def refresh_commands(self, obs: TensorDict) -> TensorDict:
+        """`obs` with its COMMAND_TERMS re-read after set_commands / set_mode, the rest as the
+        env built it. compute_observations() would re-read proprio_history as well, which
+        the env has already advanced with this step's values (it records them right after
+        building each observation): the policy would then see this step in the newest slot,
+        where training and the bridge have the previous step (zeros at the first)."""
+        obs = obs.clone()
+        clip = self.cfg.observations.clip
+        for group, layout in self.obs_layout.items():
+            start = 0
+            for term, dim, scale in layout:
+                if term in self.COMMAND_TERMS:
+                    obs[group][:, start : start + dim] = (getattr(self, f"_obs_{term}")() * scale).clamp(-clip, clip)
+                start += dim
+        return obs
+
     def _obs_commands(self) -> torch.Tensor:
         return self.commands
 

@@ -58,21 +58,24 @@ class EstimatorPPO(PPO):
 
     def update(self) -> dict[str, float]:
         losses = super().update()  # leaves the rollout in storage (clear() only rewinds its cursor)
+        mse = self.update_estimator()
+        losses["estimator_mse"] = mse
+        losses["estimator_rms"] = (mse * 3.0) ** 0.5  # RMS of the 3-vector error, m/s
+        return losses
+
+    def update_estimator(self) -> float:
+        """`estimator_epochs` passes of Adam over the rollout in storage; the mean MSE (m/s)^2."""
         actor = self._raw_actor
         total, count = 0.0, 0
         for batch in self.storage.mini_batch_generator(self.estimator_mini_batches, self.estimator_epochs):
             obs = batch.observations
-            estimate = actor.estimate(obs)
-            loss = torch.nn.functional.mse_loss(estimate, obs[TARGET_GROUP])
+            loss = torch.nn.functional.mse_loss(actor.estimate(obs), obs[TARGET_GROUP])
             self.estimator_optimizer.zero_grad()
             loss.backward()
             self.estimator_optimizer.step()
             total += loss.item()
             count += 1
-        mse = total / max(count, 1)
-        losses["estimator_mse"] = mse
-        losses["estimator_rms"] = (mse * 3.0) ** 0.5 if count else 0.0  # per-sample RMS of the 3-vector error
-        return losses
+        return total / max(count, 1)
 
     def save(self) -> dict:
         saved = super().save()

@@ -257,8 +257,8 @@ def run_scenarios(env, policy: Policy, scenarios=QUICK, seed: int = 0, estimator
         cmd = cmds_all[k]
         changed = not torch.equal(env.commands.cpu(), cmd)
         env.commands[:] = cmd.to(dev)
-        if changed:  # the policy sees a new command at once, not one step late
-            obs = env.compute_observations()
+        if changed:  # the policy sees a new command at once, not one step late (history as in training)
+            obs = env.refresh_commands(obs)
         if k and k % push_every == 0 and len(random_ids):
             ids = random_ids.to(dev)
             qvel = env.sim.qvel[ids].clone()

@@ -39,7 +39,6 @@ MODE_SEQUENCE = (("4WD", (0, 0, 0, 0)), ("FWD", (0, 0, 1, 1)), ("RWD", (1, 1, 0,
 """4WD -> FWD -> RWD: mode masks (FL, FR, RL, RR), 1 = that caster is not driven."""
 DEFAULT_MODE = "four_wheel"
 """The propulsion mode of the other profiles on a task with modes (--mode changes it)."""
-COMMAND_TERMS = ("commands", "mode_mask")
 """Observation terms that follow the operator: re-read when the command or the mode changes."""
 
 
@@ -377,24 +376,6 @@ def _fixed_mode(args: argparse.Namespace, src: PolicySource, env_cfg) -> tuple[s
     return name, tuple(int(x) for x in masks[name])
 
 
-def refresh_commands(env, obs):
-    """`obs` with its command terms (COMMAND_TERMS) re-read from the env after set_commands /
-    set_mode, the rest as the env built it. env.compute_observations() would re-read
-    proprio_history as well, which the env has already advanced with this step's values
-    (it records them right after building each observation): the policy would then see
-    this step in the newest slot, where training and the bridge have the previous step
-    (zeros at the first)."""
-    obs = obs.clone()
-    clip = env.cfg.observations.clip
-    for group, layout in env.obs_layout.items():
-        start = 0
-        for term, dim, scale in layout:
-            if term in COMMAND_TERMS:
-                obs[group][:, start : start + dim] = (getattr(env, f"_obs_{term}")() * scale).clamp(-clip, clip)
-            start += dim
-    return obs
-
-
 def _warn_untrained_commands(profile: Profile, src: PolicySource) -> None:
     """Say so when the profile commands more than the task is trained for (e.g. vy for
     the wheel robot, whose axles cannot move it sideways); play it anyway."""
@@ -433,7 +414,7 @@ def _run(args, src: PolicySource, env, policy, profile: Profile, headless: bool,
     _apply(env, cmd, mode)  # external commands first: the reset then keeps them
     obs = env.reset()
     _apply(env, cmd, mode)
-    obs = refresh_commands(env, obs)  # the reset's observation: history zeros, as in training
+    obs = env.refresh_commands(obs)  # the reset's observation: history zeros, as in training
 
     renderer = writer = viewer = None
     render_model = build.MODEL_FILES[env.cfg.robot]
@@ -470,7 +451,7 @@ def _run(args, src: PolicySource, env, policy, profile: Profile, headless: bool,
             if new_cmd != cmd or new_mode != mode or (mode is not None and reset_any):
                 cmd, mode = new_cmd, new_mode
                 _apply(env, cmd, mode)
-                obs = refresh_commands(env, obs)  # the policy sees the new command now
+                obs = env.refresh_commands(obs)  # the policy sees the new command now
             with torch.no_grad():
                 actions = policy(obs)
             obs, _, dones, _ = env.step(actions)

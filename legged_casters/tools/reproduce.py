@@ -113,7 +113,7 @@ def run_policy(
                 env.set_mode(mode)
                 changed = True
             if changed:
-                obs = env.compute_observations()
+                obs = env.refresh_commands(obs)  # the history as in training
             with torch.no_grad():
                 obs = env.step(policy(obs))[0]
             fallen |= bool((env.terminated_buf & ~env.time_out_buf)[0])

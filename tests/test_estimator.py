@@ -1,0 +1,167 @@
+"""caster_omni's velocity estimator: where it reads, what the actor and critic read, that it
+learns the trunk velocity next to PPO, and that the export carries it."""
+
+import copy
+
+import numpy as np
+import onnxruntime as ort
+import pytest
+import torch
+from rsl_rl.runners import OnPolicyRunner
+
+from legged_casters import registry
+from legged_casters.learning.estimator import TARGET_GROUP, EstimatorPPO
+from legged_casters.learning.models import ColumnsMLPModel, PriorMLPModel
+from legged_casters.tools import export
+
+TASK = "caster_omni"
+CPU = ["sim.backend=cpu"]
+
+
+@pytest.fixture(scope="module")
+def env():
+    e = registry.make_env(TASK, CPU, num_envs=8)
+    e.set_commands([0.6, 0.0, 0.3])
+    for _ in range(12):  # a history that is not all zeros
+        e.step(torch.randn(8, 12) * 0.3)
+    yield e
+    e.close()
+
+
+def _perturb(obs, columns, amount=1.0):
+    out = obs.clone()
+    start, stop = columns
+    out["policy"][:, start:stop] += amount
+    return out
+
+
+def test_the_actor_reads_the_history_only_through_the_estimate(env):
+    actor = export.build_actor(env, registry.get_task(TASK).train_cfg)
+    assert isinstance(actor, PriorMLPModel) and actor.estimator is not None
+    cols = env.policy_obs_columns()
+    hist = cols["proprio_history"]
+    first = [m for m in actor.mlp if isinstance(m, torch.nn.Linear)][0]
+    assert first.in_features == env.observation_dims()["policy"] - (hist[1] - hist[0]) + 3
+    obs = env.get_observations()
+    with torch.no_grad():
+        base = actor(obs)
+        assert not torch.allclose(actor(_perturb(obs, hist)), base)  # through the estimate
+        assert not torch.allclose(actor.estimate(_perturb(obs, hist)), actor.estimate(obs))
+        last = [m for m in actor.estimator.net if isinstance(m, torch.nn.Linear)][-1]
+        last.weight.zero_()  # a constant estimate: the history no longer matters to the action
+        base = actor(obs)
+        assert torch.allclose(actor(_perturb(obs, hist)), base)
+        assert not torch.allclose(actor(_perturb(obs, cols["joint_vel"])), base)  # the current terms do
+
+
+def test_the_critic_skips_the_history(env):
+    cfg = registry.get_task(TASK).train_cfg.for_env(env)
+    assert cfg["critic"]["class_name"].endswith("ColumnsMLPModel")
+    runner = OnPolicyRunner(env, copy.deepcopy(cfg), log_dir=None, device="cpu")
+    critic = runner.alg.critic
+    assert isinstance(critic, ColumnsMLPModel)
+    hist = env.policy_obs_columns()["proprio_history"]
+    obs = env.get_observations()
+    with torch.no_grad():
+        assert torch.allclose(critic(_perturb(obs, hist)), critic(obs))
+        assert not torch.allclose(critic(_perturb(obs, env.policy_obs_columns()["joint_vel"])), critic(obs))
+
+
+def test_the_estimator_learns_the_trunk_velocity_from_a_rollout():
+    e = registry.make_env(TASK, CPU, num_envs=16)
+    cfg = registry.get_task(TASK).train_cfg.for_env(e)
+    cfg["num_steps_per_env"] = 24
+    runner = OnPolicyRunner(e, copy.deepcopy(cfg), log_dir=None, device="cpu")
+    runner.logger.log = lambda **kw: None
+    alg = runner.alg
+    assert isinstance(alg, EstimatorPPO)
+    runner.learn(num_learning_iterations=1)
+    obs = alg.storage.observations.flatten(0, 1)
+    target = obs[TARGET_GROUP]
+    assert target.shape[1] == 3 and target.abs().max() > 0.05  # the trunk moves
+
+    def mse() -> float:
+        with torch.no_grad():
+            return float(torch.nn.functional.mse_loss(alg.actor.estimate(obs), target))
+
+    before = mse()
+    for _ in range(40):
+        alg.update_estimator()
+    after = mse()
+    assert after < 0.3 * before, (before, after)
+    saved = alg.save()
+    assert "estimator_optimizer_state_dict" in saved
+    e.close()
+
+
+def test_export_carries_the_estimator(env, tmp_path):
+    actor = export.build_actor(env, registry.get_task(TASK).train_cfg)
+    with torch.no_grad():  # a normaliser that is not the identity
+        actor.obs_normalizer.update(env.get_observations()["policy"])
+    meta = export.policy_metadata(env, TASK, actor)
+    assert meta["estimator"]["output"] == "base_lin_vel"
+    paths = export.export_policy(actor.eval(), meta, tmp_path)
+    obs = env.get_observations()
+    module = torch.jit.load(str(paths["torchscript"]))
+    with torch.no_grad():
+        expect = actor(obs)
+        assert torch.allclose(module(obs["policy"]), expect, atol=1e-5)
+        assert torch.allclose(module.estimate(obs["policy"]), actor.estimate(obs), atol=1e-5)
+    sess = ort.InferenceSession(str(paths["onnx"]))
+    (out,) = sess.run(None, {"obs": obs["policy"].numpy()})
+    assert np.allclose(out, expect.numpy(), atol=1e-5)
+
+
+def test_the_history_holds_the_observation_as_the_policy_saw_it():
+    """With observation noise on, the newest history slot is the previous observation's
+    (noisy) proprioceptive terms, not the clean state."""
+    e = registry.make_env(TASK, CPU + ["noise.level=1.0"], num_envs=4)
+    cols = e.policy_obs_columns()
+    start, stop = cols["ang_vel"][0], cols["actions"][1]
+    hist = cols["proprio_history"]
+    e.set_commands([0.5, 0.0, 0.0])
+    obs = e.get_observations()
+    for _ in range(3):
+        prev = obs["policy"][:, start:stop].clone()
+        obs, *_ = e.step(torch.zeros(4, 12))
+        newest = obs["policy"][:, hist[0] : hist[0] + (stop - start)]
+        assert torch.allclose(newest, prev)
+    clean = e._proprio()
+    assert not torch.allclose(obs["policy"][:, start:stop], clean)  # the noise is there to be kept
+    e.close()
+
+
+def test_speed_set_checks_slalom_ramp_and_sweep_bars():
+    """The speed sweep's verdict (issue 20's bars) from results: a stand-still robot fails
+    the slalom and the ramp; errors at the bar pass, above it fail."""
+    from legged_casters.tools import evaluate as ev
+
+    by = {s.name: s for s in ev.SPEED}
+    scen = (by["vy slalom"], by["fig9 ramp"])
+    e = registry.make_env(TASK, CPU, num_envs=1)
+    cfg = ev.eval_env_cfg(e.cfg, scen)
+    e.close()
+    e = registry.get_task(TASK).env_class(cfg)
+    zero = torch.zeros(e.num_envs, 12)
+    slalom, ramp = ev.run_scenarios(e, lambda obs: zero, scen)
+    e.close()
+    assert slalom.extra["swing_m"] < 0.1 and ramp.extra["best_2s_backward"] < 0.2  # it stands
+    checks = {name: ok for name, ok, _ in ev.verdict([slalom, ramp])}
+    assert checks == {
+        "vy slalom: lateral swing 0.3-0.6 m": False,
+        "vy slalom: heading change < 30.0 deg": True,
+        "fig9 ramp: best 2-s backward speed >= 2.0 m/s": False,
+    }
+
+    def track(name, cmd, err):
+        r = ev.ScenarioResult(name, "track", cmd)
+        r.err = {"vx": err, "vy": err, "wz": 0.0}
+        r.extra["est_rms"] = err
+        return r
+
+    results = [track("vx +1.50", (1.5, 0, 0), 0.15), track("vx -2.00", (-2.0, 0, 0), 0.31),
+               track("vy +0.40", (0, 0.4, 0), 0.09), track("vy -0.60", (0, -0.6, 0), 0.5)]  # fmt: skip
+    checks = {name: ok for name, ok, _ in ev.verdict(results)}
+    assert checks["vx +1.50: |vx error| <= 0.15"] and not checks["vx -2.00: |vx error| <= 0.3"]
+    assert checks["vy +0.40: |vy error| <= 0.1"] and not any(k.startswith("vy -0.60") for k in checks)
+    assert not checks["estimator RMS error <= 0.1 m/s (worst flat scenario)"]
