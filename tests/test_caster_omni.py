@@ -38,8 +38,12 @@ def test_observation_layout(env):
     assert [(n, d) for n, d, _ in env.obs_layout["critic"]] == [
         ("caster_zaxis", 12), ("swivel_pos", 4), ("swivel_vel", 4), ("lin_vel", 3),
     ]  # fmt: skip
-    assert env.observation_dims() == {"policy": 3 + 4 + 3 + 3 + 12 + 12 + 12, "critic": 12 + 4 + 4 + 3}
+    assert env.observation_dims() == {
+        "policy": 3 + 4 + 3 + 3 + 12 + 12 + 12, "critic": 12 + 4 + 4 + 3, "estimator_target": 3,
+    }  # fmt: skip
     obs = env.get_observations()
+    # The velocity estimator's regression target: the trunk velocity in the trunk frame.
+    assert torch.equal(obs["estimator_target"], env.base_lin_vel)
     assert obs["policy"].shape == (4, 49) and obs["critic"].shape == (4, 23)
     # The critic's swivel axes are the model's caster-base z axes (unit vectors, near vertical standing).
     z = obs["critic"][:, _slice(env, "critic", "caster_zaxis")].view(4, 4, 3)
