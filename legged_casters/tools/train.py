@@ -25,96 +25,15 @@ from pathlib import Path
 
 import torch
 import yaml
-from rsl_rl.runners import OnPolicyRunner
 
 from legged_casters.config import dump_yaml
 from legged_casters.envs.base import resolve_backend
+from legged_casters.learning.runner import CheckpointingRunner
 from legged_casters.sim.base import BACKEND_KINDS
 from legged_casters.tools import common
-from legged_casters.tools.common import CheckpointError, UsageError
+from legged_casters.tools.common import UsageError
 
 PROG = "train.py"
-
-
-class CheckpointingRunner(OnPolicyRunner):
-    """OnPolicyRunner whose checkpoints are written atomically and carry the env's state
-    (curriculum) and the task name, so that a resume restores them.
-
-    Iterations are counted as they are done, from 1: model_<n>.pt is the policy after n
-    iterations, written every `save_interval` iterations and after the last one; the
-    progress line says "it n/total". (rsl_rl's own numbering starts at 0 and would save
-    model_0.pt, model_50.pt, ... and model_<total - 1>.pt.)"""
-
-    def __init__(self, env, train_cfg: dict, log_dir: str | None, device: str, task: str):
-        self.task = task
-        self.last_iteration_logged = False
-        super().__init__(env, train_cfg, log_dir=log_dir, device=device)
-
-    def completed_iterations(self) -> int:
-        return self.current_learning_iteration + 1
-
-    def _configure_multi_gpu(self) -> None:
-        """rsl_rl's set-up of a torchrun launch, which hard-codes nccl and cuda:LOCAL_RANK;
-        on a CPU device the processes reduce their gradients through gloo instead."""
-        world = int(os.getenv("WORLD_SIZE", "1"))
-        if world <= 1 or str(self.device).startswith("cuda"):
-            super()._configure_multi_gpu()
-            return
-        if str(self.device) != "cpu":
-            raise ValueError(f"distributed training runs on cuda:LOCAL_RANK or cpu, not {self.device}")
-        self.gpu_world_size, self.is_distributed = world, True
-        self.gpu_local_rank = int(os.getenv("LOCAL_RANK", "0"))
-        self.gpu_global_rank = int(os.getenv("RANK", "0"))
-        if not 0 <= self.gpu_global_rank < world:
-            raise ValueError(f"RANK {self.gpu_global_rank} is outside WORLD_SIZE {world}")
-        self.cfg["multi_gpu"] = {
-            "global_rank": self.gpu_global_rank,
-            "local_rank": self.gpu_local_rank,
-            "world_size": world,
-        }
-        if not torch.distributed.is_initialized():
-            torch.distributed.init_process_group(backend="gloo", rank=self.gpu_global_rank, world_size=world)
-
-    def save(self, path: str, infos: dict | None = None) -> None:
-        """rsl_rl's own calls (its 0-based model_<index>.pt) are replaced by model_<n>.pt
-        from the progress hook; only its final save, after the last iteration, is kept."""
-        if common.CHECKPOINT_RE.match(os.path.basename(path)):
-            if not self.last_iteration_logged:
-                return
-            path = os.path.join(os.path.dirname(path), f"model_{self.completed_iterations()}.pt")
-        self.write_checkpoint(path, infos)
-
-    def write_checkpoint(self, path: str, infos: dict | None = None) -> None:
-        saved = self.alg.save()
-        saved["iter"] = self.current_learning_iteration
-        saved["infos"] = {
-            **(infos or {}),
-            "task": self.task,
-            "env_state": self.env.get_state(),
-            "saved_at": datetime.datetime.now().isoformat(timespec="seconds"),
-        }
-        common.save_checkpoint_atomic(saved, path)
-        self.logger.save_model(path, self.current_learning_iteration)
-
-    def load_checkpoint(self, ckpt: dict, path: Path) -> None:
-        """Policy, critic, normaliser, optimizer and iteration from a weights-only loaded checkpoint."""
-        infos = ckpt.get("infos") or {}
-        saved_task = infos.get("task")
-        if saved_task and saved_task != self.task:
-            raise CheckpointError(f"checkpoint {path} was trained on task {saved_task!r}, not {self.task!r}")
-        try:
-            self.alg.load(ckpt, None, True)
-        except (RuntimeError, KeyError, ValueError) as err:
-            first = str(err).strip().splitlines()[0][:300]
-            raise CheckpointError(f"checkpoint {path} does not fit this task's networks: {first}") from None
-        # rsl_rl stores the last finished iteration; continue with the next one.
-        self.current_learning_iteration = int(ckpt["iter"]) + 1
-        state = infos.get("env_state")
-        if state:
-            try:
-                self.env.set_state(state)
-            except (KeyError, ValueError, TypeError) as err:
-                raise CheckpointError(f"checkpoint {path}: saved env state does not fit the env: {err}") from None
 
 
 def build_parser() -> argparse.ArgumentParser:
