@@ -252,8 +252,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--link",
         choices=("plain", "tls", "both"),
-        default="plain",
-        help="plain TCP, mutual TLS with access control (--secure), or both one after the other (default: plain)",
+        default=None,
+        help="plain TCP, mutual TLS with access control (--secure), or both one after the other "
+        "(default: tls with --secure, else plain)",
     )
     p.add_argument(
         "--secure",
@@ -263,6 +264,13 @@ def main(argv: list[str] | None = None) -> int:
         help="certificates for --link tls/both (default: new ones in a temporary directory)",
     )
     args = p.parse_args(argv)
+    if args.link is None:
+        args.link = "plain" if args.secure is None else "tls"
+    if args.secure is not None:
+        try:  # the certificates' files, namespace and dates, before any process starts
+            transport.secure_settings(args.secure, "robot", args.namespace or f"bench{os.getpid()}")
+        except transport.SessionError as err:
+            p.error(f"{err} (give --namespace the one the certificates were made for)")
     results = []
     with tempfile.TemporaryDirectory() as tmp:
         cert_dir = args.secure
