@@ -216,6 +216,31 @@ def test_only_a_current_certificate_of_our_ca_connects(pki, case):
         assert connected == 0 and delivered == 0 and heard == [], (connected, delivered, len(heard))
 
 
+@pytest.mark.parametrize("listener_ca", ["foreign", "ours"])
+def test_a_secured_peer_refuses_a_listener_of_another_ca(pki, listener_ca):
+    """The other direction: a robot with --secure connects to a listener presenting a
+    bridge certificate of another CA (refused) or of ours (the control: connected)."""
+    port = free_port()
+    tls = "transport/link/tls/"
+    listener_cfg = transport.make_config("peer", listen=[f"tls/127.0.0.1:{port}"])
+    files = {
+        tls + "root_ca_certificate": str(pki["ours"] / certs.CA_CERT),  # it would accept our robot
+        tls + "listen_certificate": str(certs.cert_path(pki[listener_ca], "bridge")),
+        tls + "listen_private_key": str(certs.key_path(pki[listener_ca], "bridge")),
+        tls + "enable_mtls": True,
+    }
+    for path, value in files.items():
+        listener_cfg.insert_json5(path, json.dumps(value))
+    listener = zenoh.open(listener_cfg)
+    robot = secure_peer(pki["ours"], "robot", connect=port)
+    try:
+        connected = wait_for(lambda: len(list(listener.info.peers_zid())) == 1, 2.0)
+    finally:
+        robot.close()
+        listener.close()
+    assert connected == (listener_ca == "ours")
+
+
 # --- who may put what ----------------------------------------------------------------------
 @pytest.mark.parametrize(
     ("key", "receiver", "allowed"),
