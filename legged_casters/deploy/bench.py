@@ -33,8 +33,8 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
+from legged_casters.deploy import certs, transport
 from legged_casters.deploy import protocol as P
-from legged_casters.deploy import transport
 from legged_casters.deploy.policy import load_meta
 from legged_casters.deploy.simple_policy import write_policy
 from legged_casters.robot import go2
@@ -51,7 +51,9 @@ def percentiles(x_ms: np.ndarray) -> str:
     return f"p50 {p50:.3f} ms, p99 {p99:.3f} ms, max {x_ms.max():.3f} ms (n={len(x_ms)})"
 
 
-def run(args: argparse.Namespace) -> dict[str, float]:
+def run(args: argparse.Namespace, secure: Path | None = None) -> dict[str, float]:
+    """One measurement; ``secure``: a certificate directory (legged_casters.deploy.certs)
+    for mutual TLS and access control on every link, None for plain TCP."""
     tmp = None
     if args.policy is None:
         tmp = tempfile.TemporaryDirectory()
@@ -62,8 +64,11 @@ def run(args: argparse.Namespace) -> dict[str, float]:
     meta = load_meta(policy_dir)
     dt = meta.control_dt
     port = args.port
-    ns = f"bench{os.getpid()}"
+    ns = args.namespace or f"bench{os.getpid()}"
     rt = ["--rt-priority", str(args.rt_priority)] if args.rt_priority else []
+    proto = "tcp" if secure is None else "tls"
+    endpoint = f"{proto}/127.0.0.1:{port}"
+    sec = [] if secure is None else ["--secure", str(secure)]
     env = dict(os.environ)
     bridge = subprocess.Popen(
         _module_cmd(
@@ -71,7 +76,8 @@ def run(args: argparse.Namespace) -> dict[str, float]:
             "--policy",
             str(policy_dir),
             "--listen",
-            f"tcp/127.0.0.1:{port}",
+            endpoint,
+            *sec,
             "--namespace",
             ns,
             "--standup-time",
@@ -91,7 +97,8 @@ def run(args: argparse.Namespace) -> dict[str, float]:
                 _module_cmd(
                     "sim_robot",
                     "--connect",
-                    f"tcp/127.0.0.1:{port}",
+                    endpoint,
+                    *sec,
                     "--namespace",
                     ns,
                     "--state-rate",
@@ -102,7 +109,9 @@ def run(args: argparse.Namespace) -> dict[str, float]:
             )
         )
     transport.set_realtime(args.rt_priority)
-    session = zenoh.open(transport.make_config("peer", connect=[f"tcp/127.0.0.1:{port}"]))
+    # this process plays (or listens as) the robot
+    settings = None if secure is None else transport.secure_settings(secure, "robot", ns)
+    session = zenoh.open(transport.make_config("peer", connect=[endpoint], secure=settings))
     keys = P.keys(ns)
     lock = threading.Lock()
     pub_time: dict[int, float] = {}  # state seq -> publication time (monotonic s)
@@ -194,7 +203,10 @@ def run(args: argparse.Namespace) -> dict[str, float]:
     periods = np.diff(np.asarray(cmd_times))
     jit = np.abs(periods - dt) * 1e3
     st = final_status
-    print(f"bench: robot={args.robot}, control {1 / dt:.0f} Hz, {args.duration:.0f} s, rt_priority={args.rt_priority}")
+    print(
+        f"bench: robot={args.robot}, control {1 / dt:.0f} Hz, {args.duration:.0f} s, rt_priority={args.rt_priority}, "
+        f"link {'mutual TLS + access control' if secure is not None else 'plain TCP'}"
+    )
     print(f"  state publication -> command received: {percentiles(lat)}")
     if len(periods):
         print(
@@ -234,9 +246,52 @@ def main(argv: list[str] | None = None) -> int:
         "does not latch the bridge in damping and end the measurement; late commands are counted instead",
     )
     p.add_argument("--rt-priority", type=int, default=0, help="SCHED_FIFO priority for all processes (0: off)")
+    p.add_argument(
+        "--namespace", default=None, help="robot namespace (default: bench<pid>); that of the --secure certificates"
+    )
+    p.add_argument(
+        "--link",
+        choices=("plain", "tls", "both"),
+        default=None,
+        help="plain TCP, mutual TLS with access control (--secure), or both one after the other "
+        "(default: tls with --secure, else plain)",
+    )
+    p.add_argument(
+        "--secure",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="certificates for --link tls/both (default: new ones in a temporary directory)",
+    )
     args = p.parse_args(argv)
-    res = run(args)
-    return 0 if res.get("n", 0) > 0 else 1
+    if args.link is None:
+        args.link = "plain" if args.secure is None else "tls"
+    if args.secure is not None:
+        try:  # the certificates' files, namespace and dates, before any process starts
+            transport.secure_settings(args.secure, "robot", args.namespace or f"bench{os.getpid()}")
+        except transport.SessionError as err:
+            p.error(f"{err} (give --namespace the one the certificates were made for)")
+    results = []
+    with tempfile.TemporaryDirectory() as tmp:
+        cert_dir = args.secure
+        if args.link != "plain" and cert_dir is None:
+            cert_dir = Path(tmp)
+        links = {"plain": [None], "tls": [cert_dir], "both": [None, cert_dir]}[args.link]
+        for i, secure in enumerate(links):
+            if secure is not None and args.secure is None:
+                certs.make_all(secure, namespace=args.namespace or f"bench{os.getpid()}")
+            if i:
+                args.port += 1
+            results.append((secure, run(args, secure)))
+    if len(results) > 1:
+        print("bench: state -> command latency, same run:")
+        for secure, res in results:
+            name = "mutual TLS" if secure is not None else "plain TCP"
+            if res.get("n", 0):
+                print(
+                    f"  {name:>10}: p50 {res['p50_ms']:.3f} ms, p99 {res['p99_ms']:.3f} ms, max {res['max_ms']:.3f} ms"
+                )
+    return 0 if all(res.get("n", 0) > 0 for _, res in results) else 1
 
 
 if __name__ == "__main__":

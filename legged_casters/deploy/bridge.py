@@ -480,7 +480,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--summary-every", type=float, default=10.0, help="seconds between one-line health summaries (0: none)"
     )
-    transport.add_zenoh_args(p)
+    transport.add_zenoh_args(p, role="bridge")
     return p
 
 

@@ -107,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--duration", type=float, default=0.0, help="seconds (0: until Ctrl-C)")
     p.add_argument("--summary-every", type=float, default=10.0, help="seconds between status lines (0: none)")
-    transport.add_zenoh_args(p)
+    transport.add_zenoh_args(p, role="robot")
     args = p.parse_args(argv)
     if args.network_interface not in LOOPBACK:
         print(

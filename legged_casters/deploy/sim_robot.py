@@ -216,7 +216,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--startup", choices=("hold", "damping"), default="hold")
     p.add_argument("--duration", type=float, default=0.0, help="seconds (0: until Ctrl-C)")
     p.add_argument("--summary-every", type=float, default=10.0, help="seconds between status lines (0: none)")
-    transport.add_zenoh_args(p)
+    transport.add_zenoh_args(p, role="robot")
     args = p.parse_args(argv)
     try:
         session = transport.open_session(args)

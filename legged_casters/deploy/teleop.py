@@ -33,7 +33,7 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--reset", action="store_true", help="release a stop or fault (the robot stands up again)")
     p.add_argument("--duration", type=float, default=1.0, help="seconds to repeat a velocity command")
     p.add_argument("--rate", type=float, default=10.0)
-    transport.add_zenoh_args(p)
+    transport.add_zenoh_args(p, role="operator")
     args = p.parse_args(argv)
     try:
         session = transport.open_session(args)

@@ -2,20 +2,30 @@
 
 Defaults are for a robot on a known network: peer mode, multicast scouting off, only
 the endpoints given on the command line. ``--zenoh-config FILE`` loads a zenoh json5
-configuration first (TLS, access control, shared memory, ...); ``--mode``,
-``--listen`` and ``--connect`` are applied on top of it when given, and multicast
-scouting stays off unless ``--multicast-scouting`` is given.
+configuration first (shared memory, buffers, ...); ``--mode``, ``--listen`` and
+``--connect`` are applied on top of it when given, and multicast scouting stays off
+unless ``--multicast-scouting`` is given.
+
+``--secure DIR`` (certificates from ``python -m legged_casters.deploy.certs DIR``)
+secures the link: ``tls/`` endpoints only, mutual TLS with the tool's role certificate
+(the bridge: bridge; sim_robot, fake_go2, go2_adapter: robot; teleop: operator), no
+scouting, and zenoh access control that denies by default and lets each role's
+certificate put only its own keys (:func:`access_control`).
 """
 
 from __future__ import annotations
 
 import argparse
+import datetime as dt
 import json
 import os
 import re
 from pathlib import Path
 
 import zenoh
+
+from legged_casters.deploy import certs
+from legged_casters.deploy import protocol as P
 
 MODES = ("peer", "client")
 ENDPOINT_RE = re.compile(r"^[a-z][a-z0-9-]*/\S+$")
@@ -38,7 +48,9 @@ def _first_line(err: Exception) -> str:
     return re.sub(r"\s+at /\S+", "", text)  # zenoh appends source locations
 
 
-def add_zenoh_args(parser: argparse.ArgumentParser) -> None:
+def add_zenoh_args(parser: argparse.ArgumentParser, role: str | None = None) -> None:
+    """The zenoh options of a deploy tool; ``role`` (one of :data:`certs.ROLES`) is the
+    certificate the tool presents with ``--secure``."""
     g = parser.add_argument_group("zenoh")
     g.add_argument("--mode", choices=MODES, default=None, help="zenoh mode (default: peer, or the config file's)")
     g.add_argument("--listen", action="append", default=[], help="endpoint to listen on, e.g. tcp/127.0.0.1:7447")
@@ -50,6 +62,16 @@ def add_zenoh_args(parser: argparse.ArgumentParser) -> None:
     )
     g.add_argument("--zenoh-config", type=Path, default=None, help="zenoh json5 config file, applied first")
     g.add_argument("--namespace", default="go2", help="robot namespace: keys are <ns>/state, <ns>/cmd, ...")
+    if role is not None:
+        g.add_argument(
+            "--secure",
+            type=Path,
+            default=None,
+            metavar="DIR",
+            help=f"mutual TLS and access control with the certificates in DIR (ca.pem, {role}.pem, {role}.key; "
+            "make them with: python -m legged_casters.deploy.certs DIR); endpoints must then be tls/HOST:PORT",
+        )
+        parser.set_defaults(secure_role=role)
     parser.add_argument(
         "--rt-priority",
         type=int,
@@ -58,14 +80,114 @@ def add_zenoh_args(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def access_control(namespace: str) -> dict:
+    """zenoh's ``access_control`` configuration for a robot namespace, deny by default.
+
+    Each node applies it to what arrives from the others (ingress), identifying them by
+    the common name of their TLS certificate (``<role>.<ns>``, see :mod:`certs`):
+    only the bridge may put ``<ns>/cmd`` and ``<ns>/status``, only the robot
+    ``<ns>/state`` and ``<ns>/sim/truth``, only the operator ``<ns>/operator``. The three
+    roles may declare subscribers on ``<ns>/**`` and are sent the namespace's samples
+    (egress); nothing else is allowed, so a certificate of another namespace (or an
+    unknown name) can neither send nor receive."""
+    k = P.keys(namespace)
+    ns = k["state"].rsplit("/", 1)[0]
+    puts = {"robot": [k["state"], k["truth"]], "bridge": [k["cmd"], k["status"]], "operator": [k["operator"]]}
+    rules = [
+        {
+            "id": f"{role}_puts",
+            "messages": ["put"],
+            "flows": ["ingress"],
+            "permission": "allow",
+            "key_exprs": keys,
+        }
+        for role, keys in puts.items()
+    ]
+    rules += [
+        {
+            "id": "subscribe",
+            "messages": ["declare_subscriber"],
+            "flows": ["ingress", "egress"],
+            "permission": "allow",
+            "key_exprs": [f"{ns}/**"],
+        },
+        {"id": "deliver", "messages": ["put"], "flows": ["egress"], "permission": "allow", "key_exprs": [f"{ns}/**"]},
+    ]
+    subjects = [{"id": role, "cert_common_names": [certs.common_name(role, namespace)]} for role in certs.ROLES]
+    policies = [{"id": f"{role}_puts", "rules": [f"{role}_puts"], "subjects": [role]} for role in certs.ROLES]
+    policies.append({"id": "members", "rules": ["subscribe", "deliver"], "subjects": list(certs.ROLES)})
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
+
+
+def secure_settings(directory: str | Path, role: str, namespace: str) -> dict[str, object]:
+    """The zenoh settings (path -> value) of a secured node: mutual TLS with the role's
+    certificate from ``directory``, scouting off, :func:`access_control`. Raises
+    SessionError naming the fix when a file is missing, expired or for another role or
+    namespace."""
+    d = Path(directory)
+    make = f"python -m legged_casters.deploy.certs {d}"
+    if role not in certs.ROLES:
+        raise ValueError(f"role must be one of {certs.ROLES}, got {role!r}")
+    files = {"ca": d / certs.CA_CERT, "cert": certs.cert_path(d, role), "key": certs.key_path(d, role)}
+    missing = [str(f) for f in files.values() if not f.is_file()]
+    if missing:
+        raise SessionError(
+            f"--secure {d}: {', '.join(missing)} missing; make the certificates with `{make}` and copy ca.pem, "
+            f"{role}.pem and {role}.key to this machine"
+        )
+    try:
+        cn, start, end = certs.describe(files["cert"])
+    except ValueError as err:
+        msg = f"--secure {d}: {files['cert']} is not a PEM certificate ({err}); re-issue it: `{make}`"
+        raise SessionError(msg) from None
+    want = certs.common_name(role, namespace)
+    if cn != want:
+        raise SessionError(
+            f"--secure {d}: {files['cert']} is for {cn!r}, but this {role} on --namespace {namespace} needs {want!r}: "
+            f"`{make} --namespace {namespace}` (or use the --namespace it was made for)"
+        )
+    now = dt.datetime.now(dt.timezone.utc)
+    if not start <= now <= end:
+        when = f"expired on {end:%Y-%m-%d %H:%M} UTC" if now > end else f"is valid only from {start:%Y-%m-%d %H:%M} UTC"
+        raise SessionError(
+            f"--secure {d}: {files['cert']} {when}; re-issue it: `{make} --roles {role} --force "
+            f"--namespace {namespace}`"
+        )
+    tls = "transport/link/tls/"
+    return {
+        tls + "root_ca_certificate": str(files["ca"]),
+        tls + "listen_certificate": str(files["cert"]),
+        tls + "listen_private_key": str(files["key"]),
+        tls + "connect_certificate": str(files["cert"]),
+        tls + "connect_private_key": str(files["key"]),
+        tls + "enable_mtls": True,
+        # the peers are identified by the CA and their certificate's common name (access
+        # control), not by the host name they are reached at, which need not be in the certificate
+        tls + "verify_name_on_connect": False,
+        tls + "close_link_on_expiration": True,
+        "scouting/multicast/enabled": False,
+        "scouting/gossip/enabled": False,
+        "access_control": access_control(namespace),
+    }
+
+
+def check_secure_endpoints(flag: str, endpoints: list[str]) -> None:
+    for ep in endpoints:
+        if not ep.startswith("tls/"):
+            rest = ep.split("/", 1)[1] if "/" in ep else ep
+            raise SessionError(f"{flag} {ep!r}: with --secure every endpoint must be TLS: write tls/{rest}")
+
+
 def make_config(
     mode: str | None = None,
     listen: list[str] | None = None,
     connect: list[str] | None = None,
     multicast_scouting: bool = False,
     config_file: str | Path | None = None,
+    secure: dict[str, object] | None = None,
 ) -> zenoh.Config:
-    """A zenoh Config: the file (if any), then mode, endpoints and scouting on top."""
+    """A zenoh Config: the file (if any), then mode, endpoints and scouting on top, then
+    ``secure`` (:func:`secure_settings`) last."""
     if config_file is not None:
         path = Path(config_file)
         if not path.is_file():
@@ -85,6 +207,14 @@ def make_config(
     # off unless asked for on the command line, whatever the file says: a robot must not
     # discover (and start talking to) whatever else is on its network
     cfg.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast_scouting)))
+    if secure is not None:
+        if multicast_scouting:
+            raise SessionError("--multicast-scouting cannot be used with --secure: give the peers' tls/ endpoints")
+        if not listen:
+            # zenoh would otherwise listen on a plain tcp port of its choosing in peer mode
+            cfg.insert_json5("listen/endpoints", "[]")
+        for path, value in secure.items():
+            cfg.insert_json5(path, json.dumps(value))
     return cfg
 
 
@@ -109,8 +239,15 @@ def open_session(args: argparse.Namespace) -> zenoh.Session:
     set_realtime(getattr(args, "rt_priority", 0))
     check_endpoints("--listen", args.listen)
     check_endpoints("--connect", args.connect)
+    secure = None
+    if getattr(args, "secure", None) is not None:
+        check_secure_endpoints("--listen", args.listen)
+        check_secure_endpoints("--connect", args.connect)
+        secure = secure_settings(args.secure, args.secure_role, args.namespace)
     try:
-        config = make_config(args.mode, args.listen, args.connect, args.multicast_scouting, args.zenoh_config)
+        config = make_config(
+            args.mode, args.listen, args.connect, args.multicast_scouting, args.zenoh_config, secure=secure
+        )
     except FileNotFoundError as err:
         raise SessionError(f"--zenoh-config: {err}") from None
     except zenoh.ZError as err:

@@ -1,0 +1,254 @@
+"""Certificates for a secured link (``--secure DIR`` on every deploy tool).
+
+    python -m legged_casters.deploy.certs certs/                  # CA + robot, bridge, operator
+    python -m legged_casters.deploy.certs certs/ --namespace go2b  # for another robot namespace
+    python -m legged_casters.deploy.certs certs/ --roles operator --force   # re-issue one role
+
+Writes a small certificate authority (``ca.pem``, ``ca.key``) and, for each role, a
+certificate signed by it and its private key (``robot.pem``/``robot.key``,
+``bridge.pem``/``bridge.key``, ``operator.pem``/``operator.key``). A directory that
+already holds ``ca.pem`` and ``ca.key`` keeps its CA: new role certificates are signed
+by it. The common name of a role's certificate is ``<role>.<namespace>``; zenoh's access
+control (see :func:`legged_casters.deploy.transport.access_control`) grants each key
+expression of the namespace to that name only.
+
+Copy to each machine only what it needs: ``ca.pem`` and its own role's pair (the robot:
+``robot.pem``/``robot.key``). ``ca.key`` signs new certificates: keep it off the robot.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import ipaddress
+import os
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+ROLES = ("robot", "bridge", "operator")
+"""robot: sim_robot, fake_go2, go2_adapter (puts <ns>/state); bridge: puts <ns>/cmd;
+operator: teleop (puts <ns>/operator)."""
+
+CA_CERT, CA_KEY = "ca.pem", "ca.key"
+DEFAULT_HOSTS = ("localhost", "127.0.0.1", "::1")
+
+
+def cert_path(directory: str | Path, role: str) -> Path:
+    return Path(directory) / f"{role}.pem"
+
+
+def key_path(directory: str | Path, role: str) -> Path:
+    return Path(directory) / f"{role}.key"
+
+
+def common_name(role: str, namespace: str) -> str:
+    if role not in ROLES:
+        raise ValueError(f"role must be one of {ROLES}, got {role!r}")
+    return f"{role}.{namespace.strip('/')}"
+
+
+@dataclass
+class Authority:
+    cert: x509.Certificate
+    key: ec.EllipticCurvePrivateKey
+
+
+def _write_key(path: Path, key: ec.EllipticCurvePrivateKey) -> None:
+    data = key.private_bytes(
+        serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
+    )
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "wb") as f:
+        f.write(data)
+
+
+def _write_cert(path: Path, cert: x509.Certificate) -> None:
+    path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+
+
+def _validity(days: float, backdate_days: float) -> tuple[dt.datetime, dt.datetime]:
+    start = dt.datetime.now(dt.timezone.utc) - dt.timedelta(days=backdate_days, minutes=5)
+    return start, start + dt.timedelta(days=days)
+
+
+def make_ca(directory: str | Path, name: str = "legged_casters CA", days: float = 3650.0) -> Authority:
+    """A new self-signed CA in ``directory`` (ca.pem, ca.key), replacing any there."""
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    key = ec.generate_private_key(ec.SECP256R1())
+    subject = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, name)])
+    start, end = _validity(days, 0.0)
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(subject)
+        .issuer_name(subject)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(start)
+        .not_valid_after(end)
+        .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+        .add_extension(
+            x509.KeyUsage(
+                digital_signature=True,
+                content_commitment=False,
+                key_encipherment=False,
+                data_encipherment=False,
+                key_agreement=False,
+                key_cert_sign=True,
+                crl_sign=True,
+                encipher_only=False,
+                decipher_only=False,
+            ),
+            critical=True,
+        )
+        .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
+        .sign(key, hashes.SHA256())
+    )
+    _write_key(d / CA_KEY, key)
+    _write_cert(d / CA_CERT, cert)
+    return Authority(cert, key)
+
+
+def load_ca(directory: str | Path) -> Authority:
+    d = Path(directory)
+    cert = x509.load_pem_x509_certificate((d / CA_CERT).read_bytes())
+    key = serialization.load_pem_private_key((d / CA_KEY).read_bytes(), password=None)
+    if not isinstance(key, ec.EllipticCurvePrivateKey):
+        raise ValueError(f"{d / CA_KEY}: expected an EC private key")
+    return Authority(cert, key)
+
+
+def _san(hosts: tuple[str, ...] | list[str]) -> x509.SubjectAlternativeName:
+    names: list[x509.GeneralName] = []
+    for h in hosts:
+        try:
+            names.append(x509.IPAddress(ipaddress.ip_address(h)))
+        except ValueError:
+            names.append(x509.DNSName(h))
+    return x509.SubjectAlternativeName(names)
+
+
+def make_role_cert(
+    ca: Authority,
+    directory: str | Path,
+    role: str,
+    namespace: str = "go2",
+    days: float = 365.0,
+    backdate_days: float = 0.0,
+    hosts: tuple[str, ...] | list[str] = DEFAULT_HOSTS,
+) -> Path:
+    """Issue ``<role>.pem``/``<role>.key`` in ``directory``, signed by ``ca``, valid from
+    ``backdate_days`` ago for ``days`` (a backdate longer than the validity makes an
+    expired certificate, for tests). The certificate serves for both sides of a link
+    (server and client authentication): any tool may --listen or --connect."""
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    key = ec.generate_private_key(ec.SECP256R1())
+    start, end = _validity(days, backdate_days)
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, common_name(role, namespace))]))
+        .issuer_name(ca.cert.subject)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(start)
+        .not_valid_after(end)
+        .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+        .add_extension(
+            x509.KeyUsage(
+                digital_signature=True,
+                content_commitment=False,
+                key_encipherment=False,
+                data_encipherment=False,
+                key_agreement=False,
+                key_cert_sign=False,
+                crl_sign=False,
+                encipher_only=False,
+                decipher_only=False,
+            ),
+            critical=True,
+        )
+        .add_extension(
+            x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]), critical=False
+        )
+        .add_extension(_san(list(hosts)), critical=False)
+        .add_extension(x509.AuthorityKeyIdentifier.from_issuer_public_key(ca.key.public_key()), critical=False)
+        .sign(ca.key, hashes.SHA256())
+    )
+    _write_key(key_path(d, role), key)
+    _write_cert(cert_path(d, role), cert)
+    return cert_path(d, role)
+
+
+def make_all(
+    directory: str | Path,
+    namespace: str = "go2",
+    roles: tuple[str, ...] | list[str] = ROLES,
+    days: float = 365.0,
+    backdate_days: float = 0.0,
+    hosts: tuple[str, ...] | list[str] = DEFAULT_HOSTS,
+) -> list[Path]:
+    """The CA (kept if ``directory`` has one) and the given roles' certificates."""
+    d = Path(directory)
+    ca = load_ca(d) if (d / CA_CERT).is_file() and (d / CA_KEY).is_file() else make_ca(d)
+    return [make_role_cert(ca, d, r, namespace, days, backdate_days, hosts) for r in roles]
+
+
+def describe(path: str | Path) -> tuple[str, dt.datetime, dt.datetime]:
+    """(common name, not valid before, not valid after) of a PEM certificate."""
+    cert = x509.load_pem_x509_certificate(Path(path).read_bytes())
+    cn = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+    return (str(cn[0].value) if cn else ""), cert.not_valid_before_utc, cert.not_valid_after_utc
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="certs", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("directory", type=Path)
+    p.add_argument("--namespace", default="go2", help="robot namespace the certificates are for (default: go2)")
+    p.add_argument("--roles", nargs="+", choices=ROLES, default=list(ROLES), help="roles to issue (default: all)")
+    p.add_argument("--days", type=float, default=365.0, help="validity of the role certificates (default: 365)")
+    p.add_argument(
+        "--backdate-days", type=float, default=0.0, help="start the validity this many days ago (tests: expired)"
+    )
+    p.add_argument(
+        "--host",
+        action="append",
+        default=[],
+        help="extra DNS name or IP address for the certificates (added to localhost, 127.0.0.1, ::1)",
+    )
+    p.add_argument("--force", action="store_true", help="overwrite existing role certificates")
+    args = p.parse_args(argv)
+    existing = [cert_path(args.directory, r) for r in args.roles if cert_path(args.directory, r).exists()]
+    if existing and not args.force:
+        print(
+            f"certs: error: {', '.join(map(str, existing))} already exist; add --force to re-issue "
+            "(the CA in the directory is kept)",
+            file=sys.stderr,
+        )
+        return 2
+    if args.days <= 0:
+        print("certs: error: --days must be positive", file=sys.stderr)
+        return 2
+    new_ca = not (args.directory / CA_CERT).is_file()
+    hosts = DEFAULT_HOSTS + tuple(args.host)
+    paths = make_all(args.directory, args.namespace, args.roles, args.days, args.backdate_days, hosts)
+    if new_ca:
+        d = args.directory
+        print(f"certs: new certificate authority {d / CA_CERT} (its key {d / CA_KEY} signs certificates: keep it safe)")
+    for path in paths:
+        cn, start, end = describe(path)
+        print(
+            f"certs: {path} (key {path.with_suffix('.key')}): {cn}, "
+            f"valid {start:%Y-%m-%d %H:%M} to {end:%Y-%m-%d %H:%M} UTC"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
