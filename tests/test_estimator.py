@@ -165,3 +165,22 @@ def test_speed_set_checks_slalom_ramp_and_sweep_bars():
     assert checks["vx +1.50: |vx error| <= 0.15"] and not checks["vx -2.00: |vx error| <= 0.3"]
     assert checks["vy +0.40: |vy error| <= 0.1"] and not any(k.startswith("vy -0.60") for k in checks)
     assert not checks["estimator RMS error <= 0.1 m/s (worst flat scenario)"]
+
+
+def test_the_shipped_estimator_policy_loads_everywhere_and_estimates_its_speed():
+    from legged_casters.deploy.policy import load_meta
+    from legged_casters.tools import common
+    from legged_casters.tools import evaluate as ev
+
+    shipped = common.SHIPPED_POLICIES / "caster_omni_estimator"
+    meta = load_meta(shipped)  # the bridge accepts it
+    assert meta.task == TASK and meta.history_length == 10
+    task, spec, env_cfg, policy, _, dim = ev.load_exported(shipped, None)
+    assert task == TASK and policy.estimate is not None
+    scen = (ev.Scenario("fwd", ((0.0, (1.0, 0.0, 0.0)),), 5.0, 3.0),)
+    e = spec.env_class(ev.eval_env_cfg(env_cfg, scen))
+    assert e.observation_dims()["policy"] == dim == meta.obs_dim
+    (res,) = ev.run_scenarios(e, policy, scen, estimator=policy.estimate)
+    e.close()
+    assert res.mean["vx"] > 0.6 and res.falls == 0
+    assert res.extra["est_rms"] < 0.4  # it knows roughly how fast it goes

@@ -88,7 +88,7 @@ TOP_SPEED = {"forward": 2.5, "backward": 3.5}
 """m/s, the open-loop top speeds of the caster model, rounded down (scripts/top_speed.py, docs/tasks.md)."""
 SLALOM_PERIOD_S = 2.25
 """The vy slalom: vx 0.8 m/s, vy +0.4 / -0.4 m/s alternating every this many seconds."""
-RAMP_TARGET, RAMP_S = -4.5, 6.0
+RAMP_TARGET, RAMP_S = -4.0, 6.0
 """The Fig. 9 ramp: vx from 0 to RAMP_TARGET m/s over RAMP_S seconds, then held."""
 
 
