@@ -42,7 +42,11 @@ DEFAULT_SITE = "/tmp/site"
 
 ROOTS = ("mujoco", "mujoco-warp", "warp-lang", "rsl-rl-lib", "tensordict", "eclipse-zenoh")
 """The project's dependencies the GPU machine lacks; their own needs are found from their metadata."""
-NOT_CARRIED = {"imageio-ffmpeg": "only play.py's video writer uses it (an ffmpeg binary, ~30 MB)"}
+NOT_CARRIED = {
+    "imageio-ffmpeg": "only play.py's video writer uses it (an ffmpeg binary, ~30 MB)",
+    "cma": "only scripts/top_speed.py's CMA-ES uses it",
+    "cryptography": "only the deploy certificates (legged_casters.deploy.certs) use it",
+}
 """Project dependencies missing there that the GPU check does not need (never downloaded)."""
 OPTIONAL = {
     "eclipse-zenoh": "only the deploy bridge imports it",
