@@ -407,7 +407,7 @@ def caster_omni_paper_cfg() -> CasterOmniCfg:
 
 def caster_omni_train_cfg() -> TrainCfg:
     cfg = TrainCfg(experiment_name="caster_omni", max_iterations=1000)
-    # Sized for the 2-core machines by measurement (scripts/bench_train.py, docs/tasks.md): the
+    # Sized for the 2-core machines by measurement (scripts/bench_train.py, docs/training_speed.md): the
     # velocity estimator reads the 420-value history, the actor's MLP only the current terms
     # and the estimate; the critic has the privileged state and skips the history.
     cfg.policy.actor_hidden_dims = (256, 128, 64)
