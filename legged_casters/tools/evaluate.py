@@ -408,6 +408,12 @@ def verdict(results: list[ScenarioResult], task: str | None = None) -> list[tupl
     return checks
 
 
+def _short(value: float) -> str:
+    """+0.5, +0.25, +2.0: two decimals where the second one says something."""
+    text = f"{value:+.2f}"
+    return text[:-1] if text.endswith("0") else text
+
+
 def format_table(results: list[ScenarioResult]) -> str:
     lines = [
         "| scenario | command (vx, vy, wz) | mean vx | mean vy | mean wz "
@@ -415,7 +421,7 @@ def format_table(results: list[ScenarioResult]) -> str:
         "|---|---|---:|---:|---:|---:|---:|---:|---:|---|",
     ]
     for r in results:
-        cmd = "random" if r.kind == "random" else "({:+.1f}, {:+.1f}, {:+.1f})".format(*r.cmd)
+        cmd = "random" if r.kind == "random" else "({}, {}, {})".format(*(_short(c) for c in r.cmd))
         notes = ", ".join(f"{k} {v:.2f}" for k, v in r.extra.items())
         lines.append(
             f"| {r.name} | {cmd} | {r.mean['vx']:+.2f} | {r.mean['vy']:+.2f} | {r.mean['wz']:+.2f} | "
