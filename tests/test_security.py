@@ -11,7 +11,6 @@ import json
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -19,6 +18,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
+from test_deploy import free_port, wait_for
 
 from legged_casters.deploy import certs, transport
 from legged_casters.deploy import protocol as P
@@ -27,21 +27,6 @@ from legged_casters.robot import go2
 
 REPO = Path(__file__).resolve().parents[1]
 NS = "t_sec"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_for(cond, timeout: float, period: float = 0.01) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(period)
-    return cond()
 
 
 @pytest.fixture(scope="module")

@@ -36,6 +36,14 @@ def make_prior(prior: dict) -> torch.nn.Module:
     return PRIORS[kind](prior["cfg"], prior["slices"], prior["action_scale"])
 
 
+def kept_columns(dim: int, drop: tuple[int, int] | None) -> torch.Tensor:
+    """Indices 0..dim-1 without the range [start, stop) of `drop` (all of them for None)."""
+    keep = torch.ones(dim, dtype=torch.bool)
+    if drop is not None:
+        keep[drop[0] : drop[1]] = False
+    return keep.nonzero().flatten()
+
+
 class ColumnsMLPModel(MLPModel):
     """rsl_rl's MLPModel whose MLP skips the observation columns [start, stop) of `drop`
     (e.g. a critic that has the privileged state and no use for the actor's history)."""
@@ -46,9 +54,7 @@ class ColumnsMLPModel(MLPModel):
         self.register_buffer("mlp_columns", self._mlp_columns(), persistent=False)
 
     def _mlp_columns(self) -> torch.Tensor:
-        keep = torch.ones(self.obs_dim, dtype=torch.bool)
-        keep[self._drop[0] : self._drop[1]] = False
-        return keep.nonzero().flatten()
+        return kept_columns(self.obs_dim, self._drop)
 
     def _get_latent_dim(self) -> int:
         return len(self._mlp_columns())
@@ -86,11 +92,8 @@ class PriorMLPModel(MLPModel):
     def _mlp_columns(self) -> torch.Tensor:
         """Columns of the normalised observation the MLP reads (all unless the history is left to the estimator)."""
         cfg = self._estimator_cfg
-        keep = torch.ones(self.obs_dim, dtype=torch.bool)
-        if cfg is not None and not cfg.get("actor_history", True):
-            start, stop = cfg["history_slice"]
-            keep[start:stop] = False
-        return keep.nonzero().flatten()
+        skip_history = cfg is not None and not cfg.get("actor_history", True)
+        return kept_columns(self.obs_dim, tuple(cfg["history_slice"]) if skip_history else None)
 
     def _get_latent_dim(self) -> int:
         if self._estimator_cfg is None:
