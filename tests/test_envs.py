@@ -181,3 +181,31 @@ def test_set_commands_holds_them_through_timers_and_resets():
         e.step(torch.zeros(3, 12))
     e.reset_idx(torch.tensor([1]))
     assert torch.allclose(e.commands, torch.tensor([0.6, -0.2, 0.3]).expand(3, 3))
+
+
+def test_action_latency_of_a_whole_period_applies_each_action_one_step_late():
+    """domain_rand.action_latency_range = (dt, dt): the actuators keep the previous step's
+    targets for the whole control period, so actions (a1, a2) move the robot exactly as
+    (0, a1) do without latency; a reset starts from the nominal targets again."""
+    fixed = CPU + [f"domain_rand.{k}=false" for k in ("randomize_gains", "randomize_friction", "randomize_base_mass")]
+    fixed += ["domain_rand.randomize_com=false", "domain_rand.push_robots=false", "noise.enabled=false"]
+    fixed += ["init_state.joint_pos_noise=0.0", "init_state.base_vel_noise=0.0", "init_state.random_yaw=false"]
+    plain = registry.make_env("go2_flat", fixed, num_envs=2)
+    period = plain.dt
+    late = registry.make_env("go2_flat", [*fixed, f"domain_rand.action_latency_range=[{period}, {period}]"], num_envs=2)
+    assert (late.latency_steps == late.sim.decimation).all() and (plain.latency_steps == 0).all()
+    g = torch.Generator().manual_seed(0)
+    a1, a2 = (0.5 * torch.randn(2, plain.num_actions, generator=g) for _ in range(2))
+    for e in (plain, late):
+        e.reset_idx(torch.arange(2))
+    late.step(a1)
+    late.step(a2)
+    plain.step(torch.zeros_like(a1))
+    plain.step(a1)
+    torch.testing.assert_close(late.joint_pos, plain.joint_pos, atol=1e-6, rtol=0)
+    late.reset_idx(torch.arange(2))
+    torch.testing.assert_close(late.held_targets, late.action_targets(torch.zeros_like(a1)))
+    with pytest.raises(ValueError, match="control period"):
+        registry.make_env("go2_flat", [*fixed, f"domain_rand.action_latency_range=[0, {2 * period}]"], num_envs=2)
+    plain.close()
+    late.close()

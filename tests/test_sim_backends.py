@@ -201,3 +201,39 @@ def test_push_acts_for_one_step(model, kind):
     vy_later = backend.qvel[:, 1].double()
     assert vy_later[1] < vy[1]  # the force was cleared: the push decays
     backend.close()
+
+
+@pytest.mark.parametrize("kind", BACKENDS)
+def test_action_latency_holds_the_previous_targets(model, kind):
+    """step(ctrl, held, held_steps): env i applies held[i] for its first held_steps[i]
+    substeps, then ctrl[i]. 0 substeps is a plain step with ctrl, `decimation` substeps a
+    plain step with held, and in between differs from both; on the CPU backend it also
+    matches an mj_step loop that switches targets after that many substeps."""
+    n = 3
+    qpos, qvel = _perturbed_stand(model, n, seed=3)
+    held, ctrl = _targets(2, n, 0.15, seed=4)
+
+    def one_step(targets, **latency) -> torch.Tensor:
+        backend = make_backend(kind, model, n, DECIMATION, "cpu")
+        backend.reset(None, qpos.to(backend.qpos.dtype), qvel.to(backend.qvel.dtype))
+        if latency:
+            latency["held"] = latency["held"].to(backend.ctrl.dtype)
+        backend.step(targets.to(backend.ctrl.dtype), **latency)
+        q = backend.qpos.clone().double()
+        backend.close()
+        return q
+
+    with_ctrl, with_held = one_step(ctrl), one_step(held)
+    q = one_step(ctrl, held=held, held_steps=torch.tensor([0, DECIMATION, 4]))
+    torch.testing.assert_close(q[0], with_ctrl[0], atol=1e-9, rtol=0)
+    torch.testing.assert_close(q[1], with_held[1], atol=1e-9, rtol=0)
+    joints = _adr(model, go2.ACTUATED_JOINTS, "q")
+    assert (q[2, joints] - with_ctrl[2, joints]).abs().max() > 1e-4
+    assert (q[2, joints] - with_held[2, joints]).abs().max() > 1e-4
+    if kind == "cpu":
+        d = mujoco.MjData(model)
+        d.qpos[:], d.qvel[:] = qpos[2].numpy(), qvel[2].numpy()
+        for k in range(DECIMATION):
+            d.ctrl[:] = (held if k < 4 else ctrl)[2].numpy()
+            mujoco.mj_step(model, d)
+        np.testing.assert_allclose(q[2].numpy(), d.qpos, atol=2e-4, rtol=0)

@@ -127,6 +127,10 @@ class LeggedEnv(VecEnv):
         n, dev = self.num_envs, self.device
         self.actions = torch.zeros(n, self.num_actions, device=dev)
         self.last_actions = torch.zeros_like(self.actions)
+        self.latency_steps = torch.zeros(n, dtype=torch.long, device=dev)
+        """Physics substeps each env's actuators keep the previous targets (action latency)."""
+        self.held_targets = torch.zeros(n, self.num_actions, device=dev)
+        """The targets of the previous control step (what a delayed command leaves applied)."""
         self.commands = torch.zeros(n, 3, device=dev)
         self.episode_length_buf = torch.zeros(n, dtype=torch.long, device=dev)
         self.reset_buf = torch.zeros(n, dtype=torch.bool, device=dev)
@@ -282,7 +286,11 @@ class LeggedEnv(VecEnv):
         self.actions[:] = torch.nan_to_num(actions, nan=0.0, posinf=0.0, neginf=0.0).clamp(-clip, clip)
         targets = self.action_targets(self.actions)
         self._maybe_push()
-        self.sim.step(targets)
+        if self._latency_on:
+            self.sim.step(targets, self.held_targets, self.latency_steps)
+            self.held_targets[:] = targets
+        else:
+            self.sim.step(targets)
         self.episode_length_buf += 1
         self.common_step_counter += 1
         self._refresh_state()
@@ -498,8 +506,22 @@ class LeggedEnv(VecEnv):
             raise ValueError(f"joint pattern {pattern!r} matches no joint; joints: {names}")
         return dofs
 
+    @property
+    def _latency_on(self) -> bool:
+        return self.cfg.domain_rand.action_latency_range[1] > 0.0
+
     def randomize(self, env_ids: torch.Tensor) -> None:
         dr, m, dev, n = self.cfg.domain_rand, self.model, self.device, len(env_ids)
+        if self._latency_on:
+            lo, hi = dr.action_latency_range
+            if not 0.0 <= lo <= hi <= self.dt + 1e-9:
+                raise ValueError(
+                    f"domain_rand.action_latency_range {dr.action_latency_range}: need 0 <= low <= high <= the "
+                    f"control period {self.dt:g} s"
+                )
+            steps = torch.round(_uniform(lo, hi, (n,), dev) / self.sim.physics_dt).long()
+            self.latency_steps[env_ids] = steps.clamp(0, self.sim.decimation)
+            self.held_targets[env_ids] = self.action_targets(torch.zeros(n, self.num_actions, device=dev))
         if dr.randomize_friction:
             friction = torch.tensor(m.geom_friction, dtype=torch.float32, device=dev).expand(n, -1, -1).clone()
             friction[:, :, 0] = _uniform(*dr.friction_range, (n, 1), dev)

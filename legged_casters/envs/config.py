@@ -107,6 +107,12 @@ class DomainRandCfg:
     """{joint-name glob: [low, high]}: damping (N m s/rad) of the matching joints."""
     joint_frictionloss_scale: dict[str, list[float]] = field(default_factory=dict)
     """{joint-name glob: [low, high]}: scale of the matching joints' friction loss."""
+    action_latency_range: tuple[float, float] = (0.0, 0.0)
+    """Seconds from the policy's action to the actuators, per env, drawn at reset and
+    rounded to whole physics steps (at most one control period): for that long at the
+    start of each control step the actuators keep the previous step's targets, as a
+    robot's do while the command is computed and sent. Evaluated with evaluate.py
+    --action-latency-ms."""
     push_robots: bool = True
     push_interval_s: float = field(default=8.0, metadata={"min": 0.02})
     max_push_vel_xy: float = field(default=0.5, metadata={"min": 0.0})

@@ -140,8 +140,12 @@ class SimBackend(abc.ABC):
 
     # --- simulation ----------------------------------------------------------------
     @abc.abstractmethod
-    def step(self, ctrl: torch.Tensor) -> None:
-        """Apply the PD targets `ctrl` (num_envs, nu) and advance `decimation` physics steps."""
+    def step(
+        self, ctrl: torch.Tensor, held: torch.Tensor | None = None, held_steps: torch.Tensor | None = None
+    ) -> None:
+        """Apply the PD targets `ctrl` (num_envs, nu) and advance `decimation` physics steps.
+        With `held` (num_envs, nu) and `held_steps` (num_envs,) integers: env i applies
+        `held[i]` for its first `held_steps[i]` substeps, then `ctrl[i]` (action latency)."""
 
     @abc.abstractmethod
     def reset(self, env_ids: IndexLike, qpos: torch.Tensor, qvel: torch.Tensor) -> None:

@@ -142,7 +142,9 @@ class CpuBackend(SimBackend):
         return out if self._on_cpu else out.to(self.device)
 
     # --- simulation --------------------------------------------------------------------
-    def step(self, ctrl: torch.Tensor) -> None:
+    def step(
+        self, ctrl: torch.Tensor, held: torch.Tensor | None = None, held_steps: torch.Tensor | None = None
+    ) -> None:
         self._check_rows("ctrl", ctrl, self.num_envs, (self.nu,))
         self._ctrl[:] = _to_numpy(ctrl)
         if self._xfrc_pending:
@@ -152,6 +154,12 @@ class CpuBackend(SimBackend):
         else:
             control, spec = self._control, _CTRL
             control[:] = self._ctrl[:, None, :]
+        if held_steps is not None:
+            self._check_rows("held", held, self.num_envs, (self.nu,))
+            k = _to_numpy(held_steps).reshape(-1, 1)
+            first = np.arange(self.decimation)[None, :] < k  # (num_envs, decimation)
+            envs, substeps = np.nonzero(first)
+            control[envs, substeps, : self.nu] = _to_numpy(held)[envs]
         self._pool.rollout(
             self._models,
             self._datas,

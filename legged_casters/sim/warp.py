@@ -37,6 +37,22 @@ def _warp_device(device: torch.device) -> str:
     raise ValueError(f"the Warp backend runs on a cpu or cuda torch device, got {device}")
 
 
+@wp.kernel
+def _delayed_ctrl(
+    substep: int,
+    held_steps: wp.array(dtype=wp.int32),
+    held: wp.array2d(dtype=wp.float32),
+    target: wp.array2d(dtype=wp.float32),
+    ctrl: wp.array2d(dtype=wp.float32),
+):
+    """Action latency: world w applies `held` for its first held_steps[w] substeps, then `target`."""
+    w, i = wp.tid()
+    if substep < held_steps[w]:
+        ctrl[w, i] = held[w, i]
+    else:
+        ctrl[w, i] = target[w, i]
+
+
 class WarpBackend(SimBackend):
     name = "warp"
 
@@ -82,7 +98,9 @@ class WarpBackend(SimBackend):
                 raise RuntimeError(f"mujoco_warp did not batch model field {name}: shape {tuple(view.shape)}")
         self._xfrc_pending = False
         self._step_graph = None
+        self._delayed_graph = None
         self._forward_graph = None
+        self._delay: dict[str, wp.array] | None = None  # action-latency buffers, made on first use
 
     # --- views -----------------------------------------------------------------------
     @property
@@ -104,6 +122,13 @@ class WarpBackend(SimBackend):
     # --- simulation --------------------------------------------------------------------
     def _substeps(self) -> None:
         for _ in range(self.decimation):
+            mjw.step(self.wm, self.wd)
+
+    def _delayed_substeps(self) -> None:
+        d = self._delay
+        for k in range(self.decimation):
+            inputs = [k, d["steps"], d["held"], d["target"], self.wd.ctrl]
+            wp.launch(_delayed_ctrl, dim=(self.num_envs, self.nu), inputs=inputs)
             mjw.step(self.wm, self.wd)
 
     def _forward(self) -> None:
@@ -148,10 +173,27 @@ class WarpBackend(SimBackend):
             fn()
         return capture.graph
 
-    def step(self, ctrl: torch.Tensor) -> None:
+    def step(
+        self, ctrl: torch.Tensor, held: torch.Tensor | None = None, held_steps: torch.Tensor | None = None
+    ) -> None:
         self._check_rows("ctrl", ctrl, self.num_envs, (self.nu,))
-        self._ctrl.copy_(ctrl)
-        self._run(self._substeps, "_step_graph")
+        if held_steps is None:
+            self._ctrl.copy_(ctrl)
+            self._run(self._substeps, "_step_graph")
+        else:
+            self._check_rows("held", held, self.num_envs, (self.nu,))
+            if self._delay is None:
+                with wp.ScopedDevice(self.wp_device):
+                    self._delay = {
+                        "steps": wp.zeros(self.num_envs, dtype=wp.int32),
+                        "held": wp.zeros((self.num_envs, self.nu), dtype=wp.float32),
+                        "target": wp.zeros((self.num_envs, self.nu), dtype=wp.float32),
+                    }
+            d = self._delay
+            wp.to_torch(d["steps"]).copy_(held_steps.reshape(-1))
+            wp.to_torch(d["held"]).copy_(held)
+            wp.to_torch(d["target"]).copy_(ctrl)
+            self._run(self._delayed_substeps, "_delayed_graph")
         if self._xfrc_pending:
             self._xfrc.zero_()
             self._xfrc_pending = False
