@@ -191,3 +191,33 @@ def test_long_random_rollout_stays_finite():
         for key, value in extras["log"].items():
             assert torch.isfinite(torch.as_tensor(value)).all(), key
     assert e.nonfinite_resets == 0
+
+
+def test_sim2sim_conditions_keep_the_control_period():
+    """evaluate.py --physics-dt / --action-latency-ms / --noise: the evaluation env runs
+    the same control period on another physics step, with the latency in whole physics
+    steps; impossible values are usage errors; the comparison table reports the largest
+    change of an error from the first condition."""
+    from legged_casters.tools import evaluate as E
+    from legged_casters.tools.common import UsageError
+
+    spec = registry.get_task("caster_omni")
+    cfg, _ = registry.task_configs("caster_omni")
+    scenarios = E.QUICK[:1]
+    cond = E.condition_overrides(cfg, physics_dt=0.002, latency_ms=20.0, noise=True)
+    env = spec.env_class(E.eval_env_cfg(cfg, scenarios, condition=cond))
+    try:
+        assert env.sim.physics_dt == pytest.approx(0.002)
+        assert env.sim.decimation == 10 and env.dt == pytest.approx(0.02)
+        assert (env.latency_steps == 10).all()
+        assert env.cfg.noise.enabled
+    finally:
+        env.close()
+    with pytest.raises(UsageError, match="whole number"):
+        E.condition_overrides(cfg, physics_dt=0.003)
+    with pytest.raises(UsageError, match="control period"):
+        E.condition_overrides(cfg, latency_ms=30.0)
+    base = E.ScenarioResult("vx +0.5", "track", (0.5, 0.0, 0.0), {}, {"vx": 0.1, "vy": 0.05, "wz": 0.2})
+    worse = E.ScenarioResult("vx +0.5", "track", (0.5, 0.0, 0.0), {}, {"vx": 0.3, "vy": 0.05, "wz": 0.1}, falls=1)
+    table = E.format_sim2sim([("5 ms", [base], [("c", True, "x")]), ("latency", [worse], [("c", False, "y")])])
+    assert "| latency | 0/1 | 1 | +0.200 (vx +0.5 vx) | -0.100 (vx +0.5 wz) |" in table

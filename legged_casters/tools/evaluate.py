@@ -180,12 +180,50 @@ def applicable(scenarios, env_class, env_cfg) -> tuple[Scenario, ...]:
     return tuple(keep)
 
 
-def eval_env_cfg(env_cfg, scenarios, backend: str = "cpu"):
+def eval_env_cfg(env_cfg, scenarios, backend: str = "cpu", condition: dict | None = None):
+    """The evaluation env's config; `condition`: more overrides (a row of SIM2SIM)."""
     n = sum(s.copies for s in scenarios)
     longest = max(s.duration for s in scenarios)
     fields = {**EVAL_SETTINGS, "num_envs": n, "episode_length_s": longest + 1.0, "sim.backend": backend}
     fields["sim.device"] = "cpu" if backend == "cpu" else env_cfg.sim.device
+    fields.update(condition or {})
     return common.with_overrides(env_cfg, fields, "evaluation env")
+
+
+def condition_overrides(env_cfg, physics_dt: float | None = None, latency_ms: float = 0.0, noise: bool = False):
+    """Env overrides that evaluate a policy off its training conditions, same control period:
+    another physics step (the decimation follows), a fixed action latency, the training's
+    observation noise."""
+    out: dict = {}
+    control_dt = env_cfg.sim.timestep * env_cfg.sim.decimation if env_cfg.sim.timestep else None
+    if physics_dt is not None:
+        if control_dt is None:
+            raise UsageError("--physics-dt needs a task whose config sets sim.timestep")
+        decimation = round(control_dt / physics_dt)
+        if decimation < 1 or abs(decimation * physics_dt - control_dt) > 1e-9:
+            raise UsageError(
+                f"--physics-dt {physics_dt:g}: the control period {control_dt:g} s must be a whole number of physics "
+                "steps"
+            )
+        out.update({"sim.timestep": physics_dt, "sim.decimation": decimation})
+    if latency_ms:
+        if latency_ms < 0 or (control_dt is not None and latency_ms / 1e3 > control_dt + 1e-9):
+            raise UsageError(f"--action-latency-ms {latency_ms:g}: must be between 0 and the control period")
+        out["domain_rand.action_latency_range"] = (latency_ms / 1e3, latency_ms / 1e3)
+    if noise:
+        out["noise.enabled"] = True
+    return out
+
+
+SIM2SIM = (
+    ("5 ms physics (training)", {}),
+    ("2 ms physics", {"physics_dt": 0.002}),
+    ("10 ms action latency", {"latency_ms": 10.0}),
+    ("20 ms action latency", {"latency_ms": 20.0}),
+    ("observation noise on", {"noise": True}),
+    ("2 ms + 20 ms latency + noise", {"physics_dt": 0.002, "latency_ms": 20.0, "noise": True}),
+)
+"""The rows of evaluate.py --sim2sim: the training conditions first, then one change each."""
 
 
 Policy = Callable[[TensorDict], torch.Tensor]
@@ -489,6 +527,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--policy", help="an exported policy folder or its policy.pt (instead of a run)")
     p.add_argument("--scenarios", choices=sorted(SCENARIO_SETS), default="full")
     p.add_argument("--stochastic", action="store_true", help="checkpoints only: sample actions with the actor's noise")
+    p.add_argument("--physics-dt", type=float, help="physics step (s), same control period (default: the task's)")
+    p.add_argument("--action-latency-ms", type=float, default=0.0, help="action latency (ms, whole physics steps)")
+    p.add_argument("--noise", action="store_true", help="with the training's observation noise")
+    p.add_argument(
+        "--sim2sim",
+        action="store_true",
+        help="the checks under each condition of SIM2SIM (5 ms, 2 ms, latency, noise) and their change from 5 ms",
+    )
     return p
 
 
@@ -553,26 +599,71 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
             policy.estimate = actor_estimator(actor)
             label = f"{sel.ckpt_path}" + (" (stochastic)" if stochastic else "")
     scenarios = applicable(SCENARIO_SETS[args.scenarios], spec.env_class, env_cfg)
-    env = spec.env_class(eval_env_cfg(env_cfg, scenarios))
-    if dim is not None and dim != env.observation_dims()["policy"]:
-        env.close()
-        raise common.CheckpointError(
-            f"{label} expects {dim} observations; task {task} as configured gives {env.observation_dims()['policy']}"
-        )
-    print(f"[{PROG}] {label}: task {task}, {len(scenarios)} scenarios on {env.num_envs} envs")
-    t0 = time.time()
-    try:
-        results = run_scenarios(env, policy, scenarios, estimator=getattr(policy, "estimate", None))
-    finally:
-        env.close()
-    print(format_table(results))
-    checks = verdict(results, task)
-    passed = sum(ok for _, ok, _ in checks)
-    print()
-    for name, ok, value in checks:
-        print(f"{'PASS' if ok else 'FAIL'}  {name}  (measured {value})")
-    print(f"\n[{PROG}] verdict: {passed}/{len(checks)} checks passed ({time.time() - t0:.0f} s)")
+    if args.sim2sim:
+        if args.physics_dt or args.action_latency_ms or args.noise:
+            raise UsageError("--sim2sim runs its own conditions: leave out --physics-dt, --action-latency-ms, --noise")
+        conditions = [(name, condition_overrides(env_cfg, **kw)) for name, kw in SIM2SIM]
+    else:
+        cond = condition_overrides(env_cfg, args.physics_dt, args.action_latency_ms, args.noise)
+        conditions = [(", ".join(f"{k}={v}" for k, v in cond.items()) or "training conditions", cond)]
+    rows = []
+    for name, cond in conditions:
+        env = spec.env_class(eval_env_cfg(env_cfg, scenarios, condition=cond))
+        if dim is not None and dim != env.observation_dims()["policy"]:
+            env.close()
+            raise common.CheckpointError(
+                f"{label} expects {dim} observations; task {task} as configured gives "
+                f"{env.observation_dims()['policy']}"
+            )
+        print(f"[{PROG}] {label}: task {task}, {len(scenarios)} scenarios on {env.num_envs} envs; {name}")
+        t0 = time.time()
+        try:
+            results = run_scenarios(env, policy, scenarios, estimator=getattr(policy, "estimate", None))
+        finally:
+            env.close()
+        print(format_table(results))
+        checks = verdict(results, task)
+        passed = sum(ok for _, ok, _ in checks)
+        print()
+        for check, ok, value in checks:
+            print(f"{'PASS' if ok else 'FAIL'}  {check}  (measured {value})")
+        print(f"\n[{PROG}] verdict: {passed}/{len(checks)} checks passed ({time.time() - t0:.0f} s); {name}")
+        rows.append((name, results, checks))
+    if len(rows) > 1:
+        print()
+        print(format_sim2sim(rows))
     return common.EXIT_OK
+
+
+def format_sim2sim(rows) -> str:
+    """One line per condition: checks passed, falls, and the largest change of a tracking
+    error from the first row (m/s for vx/vy, rad/s for wz) with the scenario it is in."""
+    base = {r.name: r for r in rows[0][1]}
+    lines = [
+        "| condition | checks passed | falls | largest change of a vx/vy error (m/s) | of a wz error (rad/s) |",
+        "|---|---:|---:|---|---|",
+    ]
+    for name, results, checks in rows:
+        lin, ang = (0.0, "-"), (0.0, "-")
+        for r in results:
+            b = base.get(r.name)
+            if b is None or r.kind not in ("track", "mode"):
+                continue
+            for axis in ("vx", "vy", "wz"):
+                d = r.err[axis] - b.err[axis]
+                best = ang if axis == "wz" else lin
+                if abs(d) > abs(best[0]):
+                    best = (d, f"{r.name} {axis}")
+                    if axis == "wz":
+                        ang = best
+                    else:
+                        lin = best
+        falls = sum(r.falls for r in results)
+        lines.append(
+            f"| {name} | {sum(ok for _, ok, _ in checks)}/{len(checks)} | {falls} | "
+            f"{lin[0]:+.3f} ({lin[1]}) | {ang[0]:+.3f} ({ang[1]}) |"
+        )
+    return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None, default_log_root: Path | str | None = None) -> int:
