@@ -789,8 +789,11 @@ def test_teleop_cli_sends_valid_operator_messages():
 
 # --- full loop: two processes over zenoh ---------------------------------------------------
 def _spawn(module: str, *args: str) -> subprocess.Popen:
+    # at normal priority until the tool has loaded (this process may be SCHED_FIFO: `realtime`)
     return subprocess.Popen(
-        [sys.executable, "-m", f"legged_casters.deploy.{module}", *args, "--rt-priority", "10"],
+        transport.normal_priority_cmd(
+            [sys.executable, "-m", f"legged_casters.deploy.{module}", *args, "--rt-priority", "10"]
+        ),
         cwd=REPO,
         env={**os.environ, "PYTHONPATH": str(REPO)},
         stdout=subprocess.PIPE,

@@ -41,7 +41,7 @@ from legged_casters.robot import go2
 
 
 def _module_cmd(module: str, *args: str) -> list[str]:
-    return [sys.executable, "-m", f"legged_casters.deploy.{module}", *args]
+    return transport.normal_priority_cmd([sys.executable, "-m", f"legged_casters.deploy.{module}", *args])
 
 
 def percentiles(x_ms: np.ndarray) -> str:

@@ -170,6 +170,8 @@ class Bridge:
         if config.clock not in ("robot", "local"):
             raise ValueError(f"clock must be 'robot' or 'local', got {config.clock!r}")
         self.transitions: list[tuple[float, P.BridgeState, P.Fault]] = []
+        self.fault_detail = ""
+        """What tripped the last stale-state fault, in words (printed with the transition)."""
 
     # --- inputs (called from zenoh callback threads) ----------------------------------
     def _reject(self, err: P.ProtocolError) -> None:
@@ -359,7 +361,12 @@ class Bridge:
         next deadline (no control step for max_state_age + one period): damping."""
         if self.state not in (P.BridgeState.STANDUP, P.BridgeState.RUNNING):
             return
-        if now - self._latest_arrival > self.max_state_age or now - self._last_step > self.max_state_age + self.dt:
+        age, since_step = now - self._latest_arrival, now - self._last_step
+        if age > self.max_state_age or since_step > self.max_state_age + self.dt:
+            self.fault_detail = (
+                f"newest state {age * 1e3:.1f} ms old (limit {self.max_state_age * 1e3:.1f}), last control step "
+                f"{since_step * 1e3:.1f} ms ago (limit {(self.max_state_age + self.dt) * 1e3:.1f})"
+            )
             self._enter(P.BridgeState.DAMPING, P.Fault.STALE_STATE)
 
     def _local_tick(self, now: float) -> None:
@@ -505,6 +512,8 @@ def _print_transitions(bridge: Bridge, seen: int) -> int:
         _, state, fault = changes[k]
         before = changes[k - 1][1].name if k else "START"
         reason = f" ({fault.name})" if fault != P.Fault.NONE else ""
+        if fault == P.Fault.STALE_STATE and getattr(bridge, "fault_detail", ""):
+            reason += f": {bridge.fault_detail}"
         print(f"bridge: {before} -> {state.name}{reason}", flush=True)
     return len(changes)
 
@@ -534,11 +543,19 @@ def main(argv: list[str] | None = None) -> int:
         clock=args.clock,
     )
     try:
+        # Everything slow happens before the session opens and the process goes real-time:
+        # the runtime's import, the session's creation and its first runs (under SCHED_FIFO
+        # they would hold a core for a few hundred ms; docs/deploy.md, "Real-time priority").
+        runner = PolicyRunner(meta, cfg.backend)
+    except (PolicyFormatError, FileNotFoundError) as e:
+        print(f"bridge: error: {e}", file=sys.stderr)
+        return 2
+    try:
         session = transport.open_session(args)
     except transport.SessionError as err:
         print(f"bridge: error: {err}", file=sys.stderr)
         return 2
-    zb = ZenohBridge(session, args.namespace, meta, cfg).start()
+    zb = ZenohBridge(session, args.namespace, meta, cfg, runner).start()
     print(
         f"bridge: {meta.task} ({meta.robot}), {1 / meta.control_dt:.0f} Hz, "
         f"keys {zb.keys['state']} -> {zb.keys['cmd']}",

@@ -247,6 +247,10 @@ def load_meta(path: str | Path) -> PolicyMeta:
     return meta
 
 
+WARM_UP_RUNS = 10
+"""Policy runs PolicyRunner makes at construction, before any control step."""
+
+
 class PolicyRunner:
     """obs (dim,) float32 -> actions (n,) float32 through ONNX Runtime or TorchScript."""
 
@@ -279,6 +283,11 @@ class PolicyRunner:
         out = self(np.zeros(meta.obs_dim, dtype=np.float32))
         if out.shape != (meta.num_joints,):
             raise PolicyFormatError(f"policy output has shape {out.shape}, expected ({meta.num_joints},)")
+        # A few more runs on varied input: the runtime's first runs allocate and plan, and
+        # that belongs to the start-up, not to the first control steps.
+        rng = np.random.default_rng(0)
+        for _ in range(WARM_UP_RUNS):
+            self(rng.normal(0.0, 1.0, meta.obs_dim).astype(np.float32))
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
         x = obs.reshape(1, -1).astype(np.float32, copy=False)

@@ -17,9 +17,13 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
+import gc
 import json
 import os
 import re
+import shutil
+import signal
+import threading
 from pathlib import Path
 
 import zenoh
@@ -218,11 +222,19 @@ def make_config(
     return cfg
 
 
+def normal_priority_cmd(cmd: list[str]) -> list[str]:
+    """`cmd` started under the normal scheduler even from a SCHED_FIFO process (children
+    inherit the policy; a deploy tool that imports and loads under SCHED_FIFO holds a core
+    for a few hundred ms): through `chrt --other 0` where util-linux has it."""
+    chrt = shutil.which("chrt")
+    return [chrt, "--other", "0", *cmd] if chrt else list(cmd)
+
+
 def set_realtime(priority: int) -> bool:
     """Put the calling thread (and the threads it starts later, zenoh's included) under
-    SCHED_FIFO. On a loaded machine this removes the multi-millisecond scheduling gaps
-    that would otherwise trip the state watchdog. Returns False (with a warning) when
-    the OS refuses."""
+    SCHED_FIFO. Call it when the slow start-up work is done (imports, loading). On a
+    loaded machine this removes the multi-millisecond scheduling gaps that would
+    otherwise trip the state watchdog. Returns False (with a warning) when the OS refuses."""
     if priority <= 0:
         return False
     try:
@@ -233,9 +245,30 @@ def set_realtime(priority: int) -> bool:
         return False
 
 
+def _interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
+
+
+def stop_on_signals() -> None:
+    """SIGTERM (systemd, `kill`) and SIGINT stop a deploy tool the way Ctrl-C does: its
+    `finally` runs (sessions closed, the final summary printed). SIGINT too, because a
+    shell starts background jobs with SIGINT ignored, and Python then never installs
+    its Ctrl-C handler. Only from the main thread (elsewhere nothing is changed)."""
+    if threading.current_thread() is not threading.main_thread():
+        return
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, _interrupt)
+
+
 def open_session(args: argparse.Namespace) -> zenoh.Session:
     """The session of a deploy tool; a mistyped endpoint, a port in use or a peer that
-    does not answer (client mode) raise SessionError with the fix in one line."""
+    does not answer (client mode) raise SessionError with the fix in one line. From here
+    on SIGTERM and SIGINT stop the tool like Ctrl-C (`stop_on_signals`)."""
+    stop_on_signals()
+    # The objects made so far (modules, the policy) are never garbage: keep the collector
+    # from walking them again at every full collection while the tool runs.
+    gc.collect()
+    gc.freeze()
     set_realtime(getattr(args, "rt_priority", 0))
     check_endpoints("--listen", args.listen)
     check_endpoints("--connect", args.connect)
