@@ -213,6 +213,8 @@ def test_sim2sim_conditions_keep_the_control_period():
         assert env.cfg.noise.enabled
     finally:
         env.close()
+    trained, _ = registry.task_configs("caster_omni", ["domain_rand.action_latency_range=[0, 0.02]"])
+    assert tuple(E.eval_env_cfg(trained, scenarios).domain_rand.action_latency_range) == (0.0, 0.0)
     with pytest.raises(UsageError, match="whole number"):
         E.condition_overrides(cfg, physics_dt=0.003)
     with pytest.raises(UsageError, match="control period"):

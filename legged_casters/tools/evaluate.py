@@ -152,6 +152,7 @@ EVAL_SETTINGS = {
     "domain_rand.randomize_gains": False,
     "domain_rand.joint_damping": {},
     "domain_rand.joint_frictionloss_scale": {},
+    "domain_rand.action_latency_range": (0.0, 0.0),
     "init_state.joint_pos_noise": 0.0,
     "init_state.base_vel_noise": 0.0,
     "init_state.random_yaw": False,
