@@ -1,0 +1,106 @@
+"""scripts/soak.py in its short forms, and how the deploy tools stop: SIGINT and SIGTERM
+end them cleanly even when a shell started them with SIGINT ignored."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from legged_casters.deploy import transport
+
+REPO = Path(__file__).resolve().parents[1]
+ENV = {**os.environ, "PYTHONPATH": str(REPO)}
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_deploy_tool_stops_cleanly_on_sigint_and_sigterm(sig):
+    """A background job of a non-interactive shell starts with SIGINT ignored; systemd
+    stops services with SIGTERM. Either signal runs the bridge's shutdown (its final
+    summary line) and exits 0."""
+    port = _free_port()
+    cmd = [sys.executable, "-m", "legged_casters.deploy.bridge", "--listen", f"tcp/127.0.0.1:{port}"]
+    cmd += ["--namespace", f"sig{os.getpid()}"]
+    shell = "trap '' INT; exec " + " ".join(cmd)  # the exec'd bridge inherits SIGINT ignored
+    proc = subprocess.Popen(["sh", "-c", shell], cwd=REPO, env=ENV, stdout=subprocess.PIPE, text=True)
+    try:
+        t0 = time.monotonic()
+        line = proc.stdout.readline()
+        while "keys" not in line and time.monotonic() - t0 < 60:
+            line = proc.stdout.readline()
+        assert "keys" in line, "the bridge did not start"
+        proc.send_signal(sig)
+        out, _ = proc.communicate(timeout=15)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0
+    assert "bridge: state WAITING" in out  # the final summary: the finally block ran
+
+
+def test_soak_short_form(tmp_path):
+    """One minute of sim robot + bridge (the shipped caster policy) + random operator
+    commands: the processes survive, the bridge answers the states with policy
+    commands, no message is rejected, and the summary has what docs/deploy.md reports."""
+    out = tmp_path / "soak"
+    cmd = [sys.executable, "scripts/soak.py", "--minutes", "1", "--load", "none", "--rt-priority", "10"]
+    cmd += ["--port", str(_free_port()), "--report-every", "30", "--out", str(out)]
+    res = subprocess.run(cmd, cwd=REPO, env=ENV, capture_output=True, text=True, timeout=240)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["crashed"] == {}
+    assert summary["rejected"] == {}
+    assert summary["policy_steps"] > 100  # the policy ran, not only stand-ups
+    assert summary["latency"]["n"] > 1000  # ~50 answered states per second
+    assert summary["latency"]["p50_ms"] < 20.0
+    for name in ("bridge", "sim_robot"):
+        assert summary["rss_mb"][name] > 10.0
+    assert "stale-state faults" in res.stdout and "RSS bridge" in res.stdout
+    for name in ("bridge", "sim_robot"):
+        assert (out / f"{name}.log").read_text().strip()
+
+
+def test_starts_short_form(tmp_path):
+    """Two bridge starts through the stand-up against a synthetic standing robot: each
+    bridge answers, reaches RUNNING or reports the fault that stopped it, and exits 0."""
+    out = tmp_path / "starts"
+    cmd = [sys.executable, "scripts/soak.py", "--starts", "2", "--load", "none", "--rt-priority", "10"]
+    cmd += ["--port", str(_free_port()), "--run-seconds", "0.5", "--out", str(out)]
+    res = subprocess.run(cmd, cwd=REPO, env=ENV, capture_output=True, text=True, timeout=180)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    summary = json.loads((out / "starts.json").read_text())
+    assert summary["starts"] == 2
+    for r in summary["results"]:
+        assert r["returncode"] == 0
+        assert r["latency"]["n"] > 50  # stand-up (2 s) and policy commands were answered
+        assert r["final_state"] == "RUNNING" or r["faults"]
+    assert "bridge starts" in res.stdout
+
+
+def test_normal_priority_cmd_resets_an_inherited_fifo_policy():
+    """A child of a SCHED_FIFO process starts under SCHED_OTHER through normal_priority_cmd."""
+    probe = [sys.executable, "-c", "import os; print(os.sched_getscheduler(0))"]
+    old = os.sched_getscheduler(0), os.sched_getparam(0)
+    if not transport.set_realtime(5):
+        pytest.skip("SCHED_FIFO not permitted here")
+    try:
+        inherited = subprocess.run(probe, capture_output=True, text=True).stdout.strip()
+        reset = subprocess.run(transport.normal_priority_cmd(probe), capture_output=True, text=True).stdout.strip()
+    finally:
+        os.sched_setscheduler(0, old[0], old[1])
+    assert inherited == str(os.SCHED_FIFO)
+    assert reset == str(os.SCHED_OTHER)
