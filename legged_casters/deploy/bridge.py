@@ -562,6 +562,7 @@ def main(argv: list[str] | None = None) -> int:
         flush=True,
     )
     try:
+        transport.arm_signals()
         t0 = time.monotonic()
         t_end = t0 + args.duration if args.duration > 0 else float("inf")
         warned = False

@@ -155,7 +155,10 @@ def main(argv: list[str] | None = None) -> int:
         )
 
     try:
+        transport.arm_signals()
         watch.run(args.duration, args.summary_every, summary)
+    except KeyboardInterrupt:
+        pass
     finally:
         r.stop()
         if session is not None:

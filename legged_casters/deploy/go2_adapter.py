@@ -253,7 +253,10 @@ def main(argv: list[str] | None = None) -> int:
         print(line, flush=True)
 
     try:
+        transport.arm_signals()
         watch.run(args.duration, args.summary_every, summary, tick)
+    except KeyboardInterrupt:
+        pass
     finally:
         a.stop()
         cmd_sub.undeclare()

@@ -58,6 +58,7 @@ def main(argv: list[str] | None = None) -> int:
         sent[0] += 1
 
     try:
+        transport.arm_signals()
         time.sleep(0.5)  # let the session connect before the first sample
         if args.stop or args.reset:
             flags = P.OP_STOP if args.stop else P.OP_RESET
@@ -89,6 +90,8 @@ def main(argv: list[str] | None = None) -> int:
                 "have received them (is the bridge running, with this --namespace and a matching --connect/--listen?)",
                 flush=True,
             )
+    except KeyboardInterrupt:
+        pass
     finally:
         status_sub.undeclare()
         pub.undeclare()

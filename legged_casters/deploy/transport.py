@@ -245,19 +245,35 @@ def set_realtime(priority: int) -> bool:
         return False
 
 
+_signals = {"armed": False, "pending": False}
+
+
 def _interrupt(signum, frame) -> None:
-    raise KeyboardInterrupt
+    if _signals["armed"]:
+        raise KeyboardInterrupt
+    _signals["pending"] = True  # between open_session and the tool's main loop: raised there
 
 
 def stop_on_signals() -> None:
     """SIGTERM (systemd, `kill`) and SIGINT stop a deploy tool the way Ctrl-C does: its
     `finally` runs (sessions closed, the final summary printed). SIGINT too, because a
     shell starts background jobs with SIGINT ignored, and Python then never installs
-    its Ctrl-C handler. Only from the main thread (elsewhere nothing is changed)."""
+    its Ctrl-C handler. A signal that arrives before the tool's main loop (`arm_signals`)
+    is held until then: raised earlier it would skip the cleanup, and a zenoh session
+    left open keeps the process alive. Only from the main thread."""
     if threading.current_thread() is not threading.main_thread():
         return
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, _interrupt)
+
+
+def arm_signals() -> None:
+    """Called first thing inside the `try` whose `finally` cleans up: from here a stop
+    signal raises KeyboardInterrupt at once, and one that came before is raised now."""
+    _signals["armed"] = True
+    if _signals["pending"]:
+        _signals["pending"] = False
+        raise KeyboardInterrupt
 
 
 def open_session(args: argparse.Namespace) -> zenoh.Session:
