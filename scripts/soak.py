@@ -48,6 +48,7 @@ import zenoh
 
 from legged_casters.deploy import protocol as P
 from legged_casters.deploy import transport
+from legged_casters.deploy.bench import module_cmd
 from legged_casters.deploy.bridge import SHIPPED_POLICY
 from legged_casters.deploy.policy import load_meta
 from legged_casters.robot import go2
@@ -55,12 +56,6 @@ from legged_casters.robot import go2
 ROOT = Path(__file__).resolve().parents[1]
 FALL_HEIGHT = 0.15
 """Trunk height (m) below which the simulated robot counts as fallen."""
-
-
-def module_cmd(module: str, *args: str) -> list[str]:
-    """A deploy tool's command line, started at normal priority (this process may be
-    SCHED_FIFO; the tool goes real-time itself with --rt-priority once it has loaded)."""
-    return transport.normal_priority_cmd([sys.executable, "-u", "-m", f"legged_casters.deploy.{module}", *args])
 
 
 def rss_mb(pid: int) -> float:
@@ -137,8 +132,7 @@ def stop_processes(procs: dict[str, subprocess.Popen]) -> None:
 class Monitor:
     """The harness's view of the link: states, commands, status, truth."""
 
-    def __init__(self, dt: float):
-        self.dt = dt
+    def __init__(self):
         self.lock = threading.Lock()
         self.pending: dict[int, float] = {}  # state seq -> stamp (s), not yet judged
         self.answered: dict[int, float] = {}  # state seq -> arrival of the command computed from it
@@ -148,10 +142,8 @@ class Monitor:
         self.fault = P.Fault.NONE
         self.status: P.BridgeStatus | None = None
         self.faults: dict[str, int] = {}
-        self.fault_times: list[float] = []
         self.falls = 0
         self.fallen = False
-        self.trunk_z = math.nan
         self.epoch: int | None = None
 
     def on_state(self, sample) -> None:
@@ -180,14 +172,12 @@ class Monitor:
             if new_fault and P.BridgeState(st.state) in (P.BridgeState.DAMPING, P.BridgeState.STOPPED):
                 name = P.Fault(st.fault).name
                 self.faults[name] = self.faults.get(name, 0) + 1
-                self.fault_times.append(time.monotonic())
             self.bridge_state, self.fault, self.status = P.BridgeState(st.state), P.Fault(st.fault), st
 
     def on_truth(self, sample) -> None:
         t = P.SimTruth.decode(sample.payload.to_bytes())
         z = float(t.pos[2])
         with self.lock:
-            self.trunk_z = z
             if z < FALL_HEIGHT and not self.fallen:
                 self.falls += 1
             self.fallen = z < FALL_HEIGHT
@@ -243,7 +233,7 @@ def soak(args: argparse.Namespace, out: Path) -> int:
     transport.set_realtime(args.rt_priority)
     session = zenoh.open(transport.make_config("peer", connect=[endpoint]))
     keys = P.keys(ns)
-    mon = Monitor(dt)
+    mon = Monitor()
     subs = subscribe(session, keys, mon, truth=True)
     op_pub = session.declare_publisher(keys["operator"])
     sender = P.Sender()
@@ -261,7 +251,7 @@ def soak(args: argparse.Namespace, out: Path) -> int:
     crashed: dict[str, int] = {}
     commands_sent = 0
 
-    def report(final: bool = False) -> dict:
+    def report() -> dict:
         elapsed = time.monotonic() - t0
         with mon.lock:
             lat = percentiles_ms(mon.latency)
@@ -340,7 +330,7 @@ def soak(args: argparse.Namespace, out: Path) -> int:
             time.sleep(0.02)
         time.sleep(0.6)
         mon.judge(older_than=0.5)
-        result = report(final=True)
+        result = report()
     finally:
         for s in subs:
             s.undeclare()
@@ -389,7 +379,7 @@ def starts(args: argparse.Namespace, out: Path) -> int:
     bridge_log = open(out / "bridges.log", "w")  # noqa: SIM115
     try:
         for i in range(args.starts):
-            mon = Monitor(dt)
+            mon = Monitor()
             subs = subscribe(session, keys, mon, truth=False)
             cmd = module_cmd(
                 "bridge", "--policy", str(args.policy), "--connect", endpoint, "--namespace", ns,
@@ -435,12 +425,7 @@ def starts(args: argparse.Namespace, out: Path) -> int:
             mon.judge(older_than=0.0)
             for s in subs:
                 s.undeclare()
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+            stop_processes({"bridge": proc})
             lat = percentiles_ms(mon.latency)
             res = {
                 "start": i,

@@ -1040,7 +1040,7 @@ def test_live_status_lines(tmp_path, capsys):
     says when no bridge is known to have received its messages."""
     from legged_casters.deploy import bridge as B
 
-    fake = type("FakeBridge", (), {})()
+    fake = type("FakeBridge", (), {"fault_detail": ""})()
     fake.transitions = [(0.0, P.BridgeState.STANDUP, P.Fault.NONE), (1.0, P.BridgeState.RUNNING, P.Fault.NONE)]
     assert B._print_transitions(fake, 0) == 2
     fake.transitions.append((2.0, P.BridgeState.DAMPING, P.Fault.STALE_STATE))

@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 import pytest
+from test_deploy import free_port
 
 from legged_casters.deploy import transport
 
@@ -19,12 +20,13 @@ REPO = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": str(REPO)}
 
 
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+def _run_soak(out: Path, *args: str, timeout: float) -> subprocess.CompletedProcess:
+    """scripts/soak.py with `args`, no load beside it, SCHED_FIFO 10 where allowed; it must exit 0."""
+    cmd = [sys.executable, "scripts/soak.py", *args, "--load", "none", "--rt-priority", "10"]
+    cmd += ["--port", str(free_port()), "--out", str(out)]
+    res = subprocess.run(cmd, cwd=REPO, env=ENV, capture_output=True, text=True, timeout=timeout)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    return res
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
@@ -32,7 +34,7 @@ def test_a_deploy_tool_stops_cleanly_on_sigint_and_sigterm(sig):
     """A background job of a non-interactive shell starts with SIGINT ignored; systemd
     stops services with SIGTERM. Either signal runs the bridge's shutdown (its final
     summary line) and exits 0."""
-    port = _free_port()
+    port = free_port()
     cmd = [sys.executable, "-m", "legged_casters.deploy.bridge", "--listen", f"tcp/127.0.0.1:{port}"]
     cmd += ["--namespace", f"sig{os.getpid()}"]
     shell = "trap '' INT; exec " + " ".join(cmd)  # the exec'd bridge inherits SIGINT ignored
@@ -57,10 +59,7 @@ def test_soak_short_form(tmp_path):
     commands: the processes survive, the bridge answers the states with policy
     commands, no message is rejected, and the summary has what docs/deploy.md reports."""
     out = tmp_path / "soak"
-    cmd = [sys.executable, "scripts/soak.py", "--minutes", "1", "--load", "none", "--rt-priority", "10"]
-    cmd += ["--port", str(_free_port()), "--report-every", "30", "--out", str(out)]
-    res = subprocess.run(cmd, cwd=REPO, env=ENV, capture_output=True, text=True, timeout=240)
-    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    res = _run_soak(out, "--minutes", "1", "--report-every", "30", timeout=240)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["crashed"] == {}
     assert summary["rejected"] == {}
@@ -78,10 +77,7 @@ def test_starts_short_form(tmp_path):
     """Two bridge starts through the stand-up against a synthetic standing robot: each
     bridge answers, reaches RUNNING or reports the fault that stopped it, and exits 0."""
     out = tmp_path / "starts"
-    cmd = [sys.executable, "scripts/soak.py", "--starts", "2", "--load", "none", "--rt-priority", "10"]
-    cmd += ["--port", str(_free_port()), "--run-seconds", "0.5", "--out", str(out)]
-    res = subprocess.run(cmd, cwd=REPO, env=ENV, capture_output=True, text=True, timeout=180)
-    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    res = _run_soak(out, "--starts", "2", "--run-seconds", "0.5", timeout=180)
     summary = json.loads((out / "starts.json").read_text())
     assert summary["starts"] == 2
     for r in summary["results"]:

@@ -40,8 +40,11 @@ from legged_casters.deploy.simple_policy import write_policy
 from legged_casters.robot import go2
 
 
-def _module_cmd(module: str, *args: str) -> list[str]:
-    return transport.normal_priority_cmd([sys.executable, "-m", f"legged_casters.deploy.{module}", *args])
+def module_cmd(module: str, *args: str) -> list[str]:
+    """A deploy tool's command line (unbuffered output), started at normal priority: the
+    caller may be SCHED_FIFO, and the tool goes real-time itself with --rt-priority once
+    it has loaded."""
+    return transport.normal_priority_cmd([sys.executable, "-u", "-m", f"legged_casters.deploy.{module}", *args])
 
 
 def percentiles(x_ms: np.ndarray) -> str:
@@ -71,7 +74,7 @@ def run(args: argparse.Namespace, secure: Path | None = None) -> dict[str, float
     sec = [] if secure is None else ["--secure", str(secure)]
     env = dict(os.environ)
     bridge = subprocess.Popen(
-        _module_cmd(
+        module_cmd(
             "bridge",
             "--policy",
             str(policy_dir),
@@ -94,7 +97,7 @@ def run(args: argparse.Namespace, secure: Path | None = None) -> dict[str, float
     if args.robot == "sim":
         procs.append(
             subprocess.Popen(
-                _module_cmd(
+                module_cmd(
                     "sim_robot",
                     "--connect",
                     endpoint,

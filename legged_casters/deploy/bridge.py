@@ -512,7 +512,7 @@ def _print_transitions(bridge: Bridge, seen: int) -> int:
         _, state, fault = changes[k]
         before = changes[k - 1][1].name if k else "START"
         reason = f" ({fault.name})" if fault != P.Fault.NONE else ""
-        if fault == P.Fault.STALE_STATE and getattr(bridge, "fault_detail", ""):
+        if fault == P.Fault.STALE_STATE and bridge.fault_detail:
             reason += f": {bridge.fault_detail}"
         print(f"bridge: {before} -> {state.name}{reason}", flush=True)
     return len(changes)
@@ -545,7 +545,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         # Everything slow happens before the session opens and the process goes real-time:
         # the runtime's import, the session's creation and its first runs (under SCHED_FIFO
-        # they would hold a core for a few hundred ms; docs/deploy.md, "Real-time priority").
+        # they would hold a core for a few hundred ms; docs/deploy.md, "Timing").
         runner = PolicyRunner(meta, cfg.backend)
     except (PolicyFormatError, FileNotFoundError) as e:
         print(f"bridge: error: {e}", file=sys.stderr)

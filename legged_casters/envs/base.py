@@ -131,6 +131,12 @@ class LeggedEnv(VecEnv):
         """Physics substeps each env's actuators keep the previous targets (action latency)."""
         self.held_targets = torch.zeros(n, self.num_actions, device=dev)
         """The targets of the previous control step (what a delayed command leaves applied)."""
+        lo, hi = self.cfg.domain_rand.action_latency_range
+        if not 0.0 <= lo <= hi <= self.dt + 1e-9:
+            raise ValueError(
+                f"domain_rand.action_latency_range {(lo, hi)}: need 0 <= low <= high <= the control period "
+                f"{self.dt:g} s"
+            )
         self.commands = torch.zeros(n, 3, device=dev)
         self.episode_length_buf = torch.zeros(n, dtype=torch.long, device=dev)
         self.reset_buf = torch.zeros(n, dtype=torch.bool, device=dev)
@@ -513,13 +519,7 @@ class LeggedEnv(VecEnv):
     def randomize(self, env_ids: torch.Tensor) -> None:
         dr, m, dev, n = self.cfg.domain_rand, self.model, self.device, len(env_ids)
         if self._latency_on:
-            lo, hi = dr.action_latency_range
-            if not 0.0 <= lo <= hi <= self.dt + 1e-9:
-                raise ValueError(
-                    f"domain_rand.action_latency_range {dr.action_latency_range}: need 0 <= low <= high <= the "
-                    f"control period {self.dt:g} s"
-                )
-            steps = torch.round(_uniform(lo, hi, (n,), dev) / self.sim.physics_dt).long()
+            steps = torch.round(_uniform(*dr.action_latency_range, (n,), dev) / self.sim.physics_dt).long()
             self.latency_steps[env_ids] = steps.clamp(0, self.sim.decimation)
             self.held_targets[env_ids] = self.action_targets(torch.zeros(n, self.num_actions, device=dev))
         if dr.randomize_friction:

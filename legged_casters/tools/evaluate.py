@@ -645,20 +645,14 @@ def format_sim2sim(rows) -> str:
         "|---|---:|---:|---|---|",
     ]
     for name, results, checks in rows:
-        lin, ang = (0.0, "-"), (0.0, "-")
+        changes = {"lin": [], "ang": []}
         for r in results:
-            b = base.get(r.name)
-            if b is None or r.kind not in ("track", "mode"):
-                continue
-            for axis in ("vx", "vy", "wz"):
-                d = r.err[axis] - b.err[axis]
-                best = ang if axis == "wz" else lin
-                if abs(d) > abs(best[0]):
-                    best = (d, f"{r.name} {axis}")
-                    if axis == "wz":
-                        ang = best
-                    else:
-                        lin = best
+            if r.name in base and r.kind in ("track", "mode"):
+                for axis in ("vx", "vy", "wz"):
+                    d = r.err[axis] - base[r.name].err[axis]
+                    if d:
+                        changes["ang" if axis == "wz" else "lin"].append((d, f"{r.name} {axis}"))
+        lin, ang = (max(changes[k], key=lambda c: abs(c[0]), default=(0.0, "-")) for k in ("lin", "ang"))
         falls = sum(r.falls for r in results)
         lines.append(
             f"| {name} | {sum(ok for _, ok, _ in checks)}/{len(checks)} | {falls} | "
