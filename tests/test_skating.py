@@ -2,6 +2,7 @@
 carries it, its export and the bridge's copy of the clock, and the evaluation."""
 
 import copy
+import dataclasses
 
 import numpy as np
 import pytest
@@ -80,6 +81,21 @@ def test_uphill_term_raises_the_oscillation_only_when_climbing():
     assert torch.equal(_prior((0.5, 0, 0)), tilted.view(4, 3))  # the term off: gravity changes nothing
 
 
+def test_speed_feedback_pushes_for_the_speed_error_and_brakes_when_too_fast():
+    fb = dataclasses.replace(CFG, speed_feedback=1.0, command_share=0.3)
+    cmd, mask, sin = torch.tensor([[1.0, 0.0, 0.0]] * 3), torch.zeros(3, 4), torch.zeros(3)
+    vel = torch.tensor([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]])  # standing, on target, too fast
+    calf = gait_prior(fb, cmd, mask, sin, velocity=vel).view(3, 4, 3)[..., 2]
+    # push velocity 1.3, 0.3, -0.7 m/s (full_speed 0.5): full tilt, 0.6 of it, full tilt backwards
+    assert calf[0].tolist() == pytest.approx([0.2] * 4)
+    assert calf[1].tolist() == pytest.approx([0.12] * 4)
+    assert calf[2].tolist() == pytest.approx([-0.2] * 4)
+    # without feedback the velocity is ignored; with it, it is required
+    assert torch.equal(gait_prior(CFG, cmd, mask, sin, velocity=vel), gait_prior(CFG, cmd, mask, sin))
+    with pytest.raises(ValueError, match="velocity"):
+        gait_prior(fb, cmd, mask, sin)
+
+
 @pytest.fixture(scope="module")
 def env():
     e = registry.make_env(TASK, CPU, num_envs=3)
@@ -122,8 +138,9 @@ def test_the_actor_computes_the_same_prior_from_its_observation(env, uphill):
         p = env.actor_prior()
         prior = GaitPrior(p["cfg"], p["slices"], p["action_scale"])
         expect = env.gait_offsets() / env.cfg.control.action_scale
-        assert torch.allclose(prior(obs["policy"]), expect, atol=1e-5)
-        assert torch.jit.script(prior)(obs["policy"]).sub(expect).abs().max() < 1e-5
+        none = obs["policy"][:, :0]  # no speed feedback: the velocity is not read
+        assert torch.allclose(prior(obs["policy"], none), expect, atol=1e-5)
+        assert torch.jit.script(prior)(obs["policy"], none).sub(expect).abs().max() < 1e-5
     finally:
         env.cfg.gait.uphill_gain, env.cfg.gait.uphill_deadband = 0.0, 0.06
         env.noise_vec.copy_(noise)
@@ -189,10 +206,38 @@ def test_the_prior_alone_skates_in_every_direction():
     e = spec.env_class(evaluate.eval_env_cfg(spec.env_cfg, scen))
     p = e.actor_prior()
     prior = GaitPrior(p["cfg"], p["slices"], p["action_scale"])
-    res = {r.name: r for r in evaluate.run_scenarios(e, lambda obs: prior(obs["policy"]), scen)}
+    res = {r.name: r for r in evaluate.run_scenarios(e, lambda obs: prior(obs["policy"], obs["policy"][:, :0]), scen)}
     e.close()
     assert res["fwd"].mean["vx"] > 0.3 and res["back"].mean["vx"] < -0.3
     assert res["left"].mean["vy"] > 0.2 and res["ccw"].mean["wz"] > 0.3
+
+
+def test_the_prior_with_speed_feedback_holds_the_commanded_speed():
+    """Without feedback the prior pushes equally for every command above full_speed (one
+    speed); fed the simulator's trunk velocity, the same prior holds 0.3 and 0.8 m/s."""
+    spec = registry.get_task(TASK)
+    scen = tuple(evaluate.Scenario(f"vx{v}", ((0.0, (v, 0, 0)),), 6.0, 2.0) for v in (0.3, 0.8))
+    speeds = {}
+    for k in (0.0, 1.0):
+        cfg = copy.deepcopy(spec.env_cfg)
+        cfg.gait.speed_feedback, cfg.gait.command_share = k, 0.3
+        e = spec.env_class(evaluate.eval_env_cfg(cfg, scen))
+        res = evaluate.run_scenarios(e, lambda obs, e=e: e.gait_offsets() / e.cfg.control.action_scale, scen)
+        speeds[k] = [r.mean["vx"] for r in res]
+        e.close()
+    assert abs(speeds[0.0][1] - speeds[0.0][0]) < 0.25  # one speed whatever the command
+    assert speeds[1.0][0] == pytest.approx(0.3, abs=0.12) and speeds[1.0][1] == pytest.approx(0.8, abs=0.2)
+
+
+def test_an_actor_whose_prior_needs_the_speed_has_an_estimator():
+    e = registry.make_env(TASK, CPU + ["gait.speed_feedback=1.0"], num_envs=2)
+    cfg = registry.get_task(TASK).train_cfg
+    assert export.build_actor(e, cfg).prior.needs_velocity
+    no_est = copy.deepcopy(cfg)
+    no_est.estimator.hidden_dims = ()
+    with pytest.raises(ValueError, match="estimator"):
+        export.build_actor(e, no_est)
+    e.close()
 
 
 def test_evaluation_of_a_standing_policy_reports_the_command_as_error():

@@ -100,7 +100,7 @@ def test_env_reads_the_16_action_layout():
     prior = env.actor_prior()
     env.set_commands([0.9, 0.0, 0.6])
     obs = env.compute_observations()["policy"]
-    out = DrivePrior(prior["cfg"], prior["slices"], prior["action_scale"])(obs)
+    out = DrivePrior(prior["cfg"], prior["slices"], prior["action_scale"])(obs, obs[:, :0])
     y = np.array(wheel_lateral_positions())
     expect = (0.9 - 0.6 * y) / (go2.DRIVE_WHEEL_RADIUS * 10.0)
     assert torch.all(out[:, :12] == 0.0)
@@ -108,12 +108,23 @@ def test_env_reads_the_16_action_layout():
     env.close()
 
 
+class _Feedforward(torch.nn.Module):
+    """An actor that is only the drive feedforward (the prior without a velocity estimate)."""
+
+    def __init__(self, prior: torch.nn.Module):
+        super().__init__()
+        self.prior = prior
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.prior(obs, obs[:, :0])
+
+
 def _write_export(tmp_path, env) -> None:
     """policy.yaml of `env` plus a TorchScript actor that is only the drive feedforward."""
     meta = policy_metadata(env, "go2_wheel_flat")
     (tmp_path / "policy.yaml").write_text(metadata_yaml(meta))
     prior = env.actor_prior()
-    module = torch.jit.script(DrivePrior(prior["cfg"], prior["slices"], prior["action_scale"]))
+    module = torch.jit.script(_Feedforward(DrivePrior(prior["cfg"], prior["slices"], prior["action_scale"])))
     module.save(str(tmp_path / "policy.pt"))
 
 
@@ -138,7 +149,7 @@ def test_export_metadata_and_bridge_commands(tmp_path):
     sent = []
     bridge = Bridge(
         meta,
-        BridgeConfig(standup_time=0.04, backend="torchscript", operator_timeout=0.0),
+        BridgeConfig(standup="linear", standup_time=0.04, backend="torchscript", operator_timeout=0.0),
         lambda w, p: sent.append((w, p)),
     )
     s = P.Sender()

@@ -256,11 +256,17 @@ class CasterOmniEnv(LeggedEnv):
         }
 
     def gait_offsets(self) -> torch.Tensor:
-        """The prior's joint-target offsets (num_envs, 12), rad (zero when it is off)."""
+        """The prior's joint-target offsets (num_envs, 12), rad (zero when it is off). With
+        speed feedback it reads the simulator's trunk velocity (the actor reads its estimate)."""
         if not self.cfg.gait.enabled:
             return torch.zeros(self.num_envs, self.num_actions, device=self.device)
         return gait_prior(
-            self.cfg.gait, self.commands, self.mode_mask, torch.sin(self.gait_phase), self.projected_gravity
+            self.cfg.gait,
+            self.commands,
+            self.mode_mask,
+            torch.sin(self.gait_phase),
+            self.projected_gravity,
+            self.base_lin_vel,
         )
 
     def _post_physics_step(self) -> None:

@@ -23,16 +23,18 @@ def wheel_lateral_positions() -> list[float]:
 class DrivePrior(torch.nn.Module):
     """Raw policy observation (n, dim) -> prior action (n, num_actions) in action units:
     zeros for the legs, (vx - wz y_i) / (R * velocity_action_scale) for the wheels.
-    `slices` gives (start, scale) of the commands term. Scriptable."""
+    `slices` gives (start, scale) of the commands term; the velocity estimate is not
+    used (the same call as the gait prior's). Scriptable."""
 
     def __init__(self, cfg: dict, slices: dict[str, list[float]], action_scale: float):
         super().__init__()
         self.cmd_start, self.cmd_scale = int(slices["commands"][0]), float(slices["commands"][1])
         self.num_legs = int(cfg["num_leg_joints"])
+        self.needs_velocity = False
         self.gain = float(cfg.get("gain", 1.0)) / (float(cfg["wheel_radius"]) * float(action_scale))
         self.register_buffer("wheel_y", torch.tensor(cfg["wheel_y"], dtype=torch.float32), persistent=False)
 
-    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+    def forward(self, obs: torch.Tensor, velocity: torch.Tensor) -> torch.Tensor:
         commands = obs[:, self.cmd_start : self.cmd_start + 3] / self.cmd_scale
         wheels = (commands[:, 0:1] - commands[:, 2:3] * self.wheel_y) * self.gain
         legs = torch.zeros(obs.shape[0], self.num_legs, dtype=obs.dtype, device=obs.device)

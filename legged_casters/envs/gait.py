@@ -15,6 +15,13 @@ deployed policy can compute it from what it observes:
   foot velocity's x part, the thighs swing front and rear legs in antiphase for its
   y part. Casters masked by the propulsion mode do not oscillate.
 * Both fade in with the foot's commanded speed (zero command: the nominal pose).
+* Speed feedback (`speed_feedback` k > 0, off by default): the planar velocity the
+  posture and oscillation aim at becomes `command_share` * v_cmd + k (v_cmd - v_est),
+  v_est the actor's own trunk-velocity estimate (legged_casters.learning.estimator).
+  Without it the prior pushes equally hard for every command above `full_speed`, so
+  the robot accelerates to one speed whatever it is told; with it the push follows
+  the speed error, reverses to brake when the robot is too fast, and fades as the
+  robot reaches the command.
 * Uphill effort (`uphill_gain`, off by default): the oscillation amplitude grows with
   the grade the trunk stands on along the commanded direction, read from the
   projected gravity (an IMU quantity the actor observes), because the push a caster
@@ -66,6 +73,12 @@ class GaitPriorCfg:
     nose-up when it skates on the flat (3 deg of slope add about 0.065)."""
     max_amplitude: float = field(default=0.6, metadata={"min": 0.0})
     """Cap on the oscillation amplitude (rad) with the uphill term."""
+    speed_feedback: float = field(default=0.0, metadata={"min": 0.0})
+    """Gain k of the speed error in the push velocity (see the module text); 0: the prior
+    reads the command alone. Needs a velocity estimate: the actor's estimator."""
+    command_share: float = field(default=1.0, metadata={"min": 0.0})
+    """Share of the commanded planar velocity in the push velocity (the feedforward);
+    only used with speed_feedback > 0."""
 
 
 FOOT_XY = torch.tensor(
@@ -96,10 +109,18 @@ def _prior(
     uphill_gain: float,
     uphill_deadband: float,
     max_amplitude: float,
+    velocity: torch.Tensor,
+    speed_feedback: float,
+    command_share: float,
 ) -> torch.Tensor:
-    # Each foot's commanded planar velocity v + w x r (trunk frame), (n, 4) per axis.
-    vx = commands[:, 0:1] - commands[:, 2:3] * foot_xy[:, 1]
-    vy = commands[:, 1:2] + commands[:, 2:3] * foot_xy[:, 0]
+    # The planar velocity to push for: the command, or with speed feedback its share plus
+    # k times the error of the velocity estimate (n, 2); velocity is unused without it.
+    push = commands[:, 0:2]
+    if speed_feedback > 0.0:
+        push = command_share * push + speed_feedback * (push - velocity[:, 0:2])
+    # Each foot's planar velocity to push for, v + w x r (trunk frame), (n, 4) per axis.
+    vx = push[:, 0:1] - commands[:, 2:3] * foot_xy[:, 1]
+    vy = push[:, 1:2] + commands[:, 2:3] * foot_xy[:, 0]
     speed = torch.sqrt(vx * vx + vy * vy + 1e-12)
     ramp = (speed / full_speed).clamp(max=1.0)
     ux, uy = vx / speed.clamp(min=1e-6), vy / speed.clamp(min=1e-6)
@@ -125,13 +146,20 @@ def gait_prior(
     mask: torch.Tensor,
     sin_phase: torch.Tensor,
     gravity: torch.Tensor | None = None,
+    velocity: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Joint-target offsets (n, 12) in rad, go2.ACTUATED_JOINTS order.
 
     commands (n, 3): vx, vy (m/s), wz (rad/s) in the trunk frame; mask (n, 4): 1 = that
     caster must not oscillate; sin_phase (n,): sine of the clock phase; gravity (n, 3):
-    the projected gravity (unit, trunk frame), needed when cfg.uphill_gain > 0."""
+    the projected gravity (unit, trunk frame), needed when cfg.uphill_gain > 0;
+    velocity (n, >= 2): the trunk's planar velocity (m/s, trunk frame), needed when
+    cfg.speed_feedback > 0."""
     dev = commands.device
+    if velocity is None:
+        if cfg.speed_feedback > 0.0:
+            raise ValueError("gait.speed_feedback needs the trunk velocity")
+        velocity = torch.zeros(commands.shape[0], 2, device=dev)
     if gravity is None:
         if cfg.uphill_gain > 0.0:
             raise ValueError("gait.uphill_gain needs the projected gravity")
@@ -140,11 +168,13 @@ def gait_prior(
         commands, mask, sin_phase, FOOT_XY.to(dev), _SIDE.to(dev), _FRONT.to(dev),
         cfg.tilt, cfg.amplitude, cfg.thigh_share, cfg.full_speed, cfg.lateral_gain,
         gravity, cfg.uphill_gain, cfg.uphill_deadband, cfg.max_amplitude,
+        velocity, cfg.speed_feedback, cfg.command_share,
     )  # fmt: skip
 
 
 class GaitPrior(torch.nn.Module):
-    """The prior inside the actor: raw policy observation (n, dim) -> prior action
+    """The prior inside the actor: raw policy observation (n, dim) and the actor's
+    velocity estimate (n, >= 2; any (n, 0) tensor without speed feedback) -> prior action
     (n, 12) in action units. `slices` gives (start, scale) of the observation terms
     commands, mode_mask and gait_phase, and projected_gravity for the uphill term (the
     layout is the env's). Scriptable."""
@@ -156,6 +186,8 @@ class GaitPrior(torch.nn.Module):
         self.full_speed, self.lateral_gain = float(c.full_speed), float(c.lateral_gain)
         self.uphill_gain, self.max_amplitude = float(c.uphill_gain), float(c.max_amplitude)
         self.uphill_deadband = float(c.uphill_deadband)
+        self.speed_feedback, self.command_share = float(c.speed_feedback), float(c.command_share)
+        self.needs_velocity = self.speed_feedback > 0.0
         if self.uphill_gain > 0.0 and "projected_gravity" not in slices:
             raise ValueError("a gait prior with uphill_gain needs the projected_gravity observation slice")
         grav = slices.get("projected_gravity", [0, 1.0])
@@ -168,7 +200,7 @@ class GaitPrior(torch.nn.Module):
         self.register_buffer("side", _SIDE.clone(), persistent=False)
         self.register_buffer("front", _FRONT.clone(), persistent=False)
 
-    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+    def forward(self, obs: torch.Tensor, velocity: torch.Tensor) -> torch.Tensor:
         commands = obs[:, self.cmd_start : self.cmd_start + 3] / self.cmd_scale
         mask = obs[:, self.mask_start : self.mask_start + 4] / self.mask_scale
         sin_phase = obs[:, self.phase_start] / self.phase_scale
@@ -177,6 +209,7 @@ class GaitPrior(torch.nn.Module):
             commands, mask, sin_phase, self.foot_xy, self.side, self.front,
             self.tilt, self.amplitude, self.thigh_share, self.full_speed, self.lateral_gain,
             gravity, self.uphill_gain, self.uphill_deadband, self.max_amplitude,
+            velocity, self.speed_feedback, self.command_share,
         )  # fmt: skip
         return offsets / self.action_scale
 

@@ -9,7 +9,9 @@ around the prior, its exploration noise is centred on the prior's motion, and th
 deterministic actor (and its export) is prior + MLP: the robot side runs one network.
 
 With `estimator` (legged_casters.learning.estimator), the MLP reads the estimator's
-trunk-velocity estimate (detached) beside the normalised observation; with
+trunk-velocity estimate (detached) beside the normalised observation, and so does the
+prior (a caster prior with speed feedback pushes for the error between the command and
+that estimate; it needs the estimator); with
 `actor_history: False` it reads only the current observation's terms (the estimator
 alone reads the proprioceptive history), which also makes the actor small.
 """
@@ -83,6 +85,11 @@ class PriorMLPModel(MLPModel):
                 f"{type(self.distribution).__name__} with input {self.distribution.input_dim}"
             )
         self.prior = make_prior(prior)
+        if self.prior.needs_velocity and estimator is None:
+            raise ValueError(
+                "the actor's prior has speed feedback (gait.speed_feedback > 0) and needs the velocity estimator: "
+                "set policy.estimator_hidden_dims (or gait.speed_feedback=0)"
+            )
         self.estimator = None
         if estimator is not None:
             out_dim, activation = int(estimator.get("out_dim", 3)), kwargs.get("activation", "elu")
@@ -105,10 +112,12 @@ class PriorMLPModel(MLPModel):
         raw = torch.cat([obs[group] for group in self.obs_groups], dim=-1)
         return self.estimator(self.obs_normalizer(raw))
 
-    def mlp_input(self, normalised: torch.Tensor) -> torch.Tensor:
+    def mlp_input(self, normalised: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(the MLP's input, the detached velocity estimate or an (n, 0) tensor without an estimator)."""
         if self.estimator is None:
-            return normalised
-        return torch.cat([normalised[:, self.mlp_columns], self.estimator(normalised).detach()], dim=-1)
+            return normalised, normalised[:, :0]
+        estimate = self.estimator(normalised).detach()
+        return torch.cat([normalised[:, self.mlp_columns], estimate], dim=-1), estimate
 
     def as_jit(self):
         raise NotImplementedError("rsl_rl's JIT export would drop the prior: use export.py (DeployedPolicy)")
@@ -119,7 +128,8 @@ class PriorMLPModel(MLPModel):
     def forward(self, obs: TensorDict, masks=None, hidden_state=None, stochastic_output: bool = False) -> torch.Tensor:
         obs = unpad_trajectories(obs, masks) if masks is not None and not self.is_recurrent else obs
         raw = torch.cat([obs[group] for group in self.obs_groups], dim=-1)
-        mean = self.mlp(self.mlp_input(self.obs_normalizer(raw))) + self.prior(raw)
+        x, estimate = self.mlp_input(self.obs_normalizer(raw))
+        mean = self.mlp(x) + self.prior(raw, estimate)
         if self.distribution is not None:
             if stochastic_output:
                 self.distribution.update(mean)

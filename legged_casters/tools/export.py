@@ -50,7 +50,7 @@ class DeployedPolicy(nn.Module):
 
     Computes exactly what the training actor computes in its deterministic forward on the
     concatenated policy observation: x = (obs - mean) / (std + eps); with an estimator,
-    the MLP reads x's kept columns and the estimate, else x; + prior(obs) -> head. The
+    the MLP reads x's kept columns and the estimate, else x; + prior(obs, estimate) -> head. The
     TorchScript file also has `estimate(obs)`: the estimator's trunk velocity (m/s)."""
 
     def __init__(self, actor: nn.Module):
@@ -76,11 +76,13 @@ class DeployedPolicy(nn.Module):
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         x = (obs - self.obs_mean) / self.obs_denom
+        estimate = x[:, :0]
         if self.estimator is not None:
-            x = torch.cat([x[:, self.mlp_columns], self.estimator(x)], dim=-1)
+            estimate = self.estimator(x)
+            x = torch.cat([x[:, self.mlp_columns], estimate], dim=-1)
         mean = self.mlp(x)
         if self.prior is not None:
-            mean = mean + self.prior(obs)
+            mean = mean + self.prior(obs, estimate)
         return self.head(mean)
 
     @torch.jit.export
