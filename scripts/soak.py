@@ -22,7 +22,8 @@ hour, from the end of the first minute to the end). Exit status 1 if a process d
 **Starts** (``--starts N``): N fresh bridge processes, one after the other. This process
 plays the robot: a standing state every control period on absolute deadlines (stamped
 with the deadline) from the moment the bridge's first status arrives, through the
-stand-up (``--standup-time``) and ``--run-seconds`` of policy. Counted: starts whose
+linear stand-up (``--standup linear --standup-time``: these states do not move, so the
+fold stand-up would only take longer) and ``--run-seconds`` of policy. Counted: starts whose
 bridge latched a fault, and each start's longest gap between answered states.
 
 Both write their logs (each process's output, a JSON summary) to ``--out``
@@ -383,7 +384,8 @@ def starts(args: argparse.Namespace, out: Path) -> int:
             subs = subscribe(session, keys, mon, truth=False)
             cmd = module_cmd(
                 "bridge", "--policy", str(args.policy), "--connect", endpoint, "--namespace", ns,
-                "--standup-time", f"{args.standup_time:g}", "--operator-timeout", "0", "--summary-every", "0", *rt,
+                "--standup", "linear", "--standup-time", f"{args.standup_time:g}", "--operator-timeout", "0",
+                "--summary-every", "0", *rt,
             )  # fmt: skip
             bridge_log.write(f"--- start {i}\n")
             bridge_log.flush()

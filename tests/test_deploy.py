@@ -32,6 +32,7 @@ from legged_casters.deploy.policy import (
 )
 from legged_casters.deploy.sim_robot import ZenohSimRobot
 from legged_casters.deploy.simple_policy import DEFAULT_TERMS, write_policy
+from legged_casters.deploy.standup import StandUp, StandUpCfg
 from legged_casters.robot import build, go2
 from legged_casters.utils.math import quat_rotate_inverse
 
@@ -87,10 +88,12 @@ def standing_state(sender: P.Sender, q=None, stamp_ns: int | None = None) -> P.R
 
 
 class FakeRobot:
-    """Feeds a Bridge standing states on an absolute 50 Hz clock, in a thread."""
+    """Feeds a Bridge standing states on an absolute 50 Hz clock, in a thread (`quat`:
+    the trunk's orientation, upright unless set)."""
 
     def __init__(self, deliver, q=None, period: float = DT):
         self.deliver, self.q, self.period = deliver, q, period
+        self.quat = [1.0, 0.0, 0.0, 0.0]
         self.sender = P.Sender()
         self.running = True
         self.paused = False
@@ -108,7 +111,9 @@ class FakeRobot:
             time.sleep(max(0.0, deadline - time.monotonic()))
             if not self.paused:
                 stamp = int((deadline + self.stamp_offset) * 1e9) if self.frozen_stamp is None else self.frozen_stamp
-                self.deliver(standing_state(self.sender, self.q, stamp).encode())
+                state = standing_state(self.sender, self.q, stamp)
+                state.quat = list(self.quat)
+                self.deliver(state.encode())
                 self.last_publish = time.monotonic()
             k += 1
 
@@ -379,11 +384,12 @@ def _bridge(tmp_path, rec, **kw) -> Bridge:
     # staleness is tested over zenoh below; here a generous limit keeps a loaded machine from tripping it
     kw.setdefault("max_state_age", 0.5)
     kw.setdefault("operator_timeout", 0.0)
+    kw.setdefault("standup", "linear")  # short: these tests are about what follows it
     cfg = BridgeConfig(standup_time=kw.pop("standup_time", 0.1), **kw)
     return Bridge(meta, cfg, rec)
 
 
-def test_no_motion_before_state_then_standup_ramp(tmp_path, realtime):
+def test_no_motion_before_state_then_linear_standup_ramp(tmp_path, realtime):
     rec = Recorder()
     b = _bridge(tmp_path, rec, standup_time=0.2)
     b.start()
@@ -402,6 +408,70 @@ def test_no_motion_before_state_then_standup_ramp(tmp_path, realtime):
     assert np.allclose(ramp[0].q, crouch + 0.1 * (b.default - crouch), atol=1e-5)  # starts at the measured pose
     assert np.allclose(ramp[-1].q, b.default, atol=1e-5)
     assert all(np.allclose(c.kp, go2.kp()) for c in ramp)
+
+
+def test_fold_standup_folds_tucks_and_lifts_to_the_default_pose(tmp_path, realtime):
+    rec = Recorder()
+    b = _bridge(tmp_path, rec, standup="fold", standup_time=0.4)
+    crouch = np.asarray(go2.default_joint_positions()) + np.tile([0.3, 0.4, -0.5], 4)
+    robot = FakeRobot(b.on_state, q=crouch)  # upright trunk: no attitude feedback
+    b.start()
+    try:
+        assert wait_for(lambda: b.state is P.BridgeState.RUNNING, 4.0)
+    finally:
+        robot.stop()
+        b.stop()
+    ramp = np.array([c.q for _, c in rec.cmds if c.mode == P.CommandMode.STANDUP])
+    su = StandUpCfg(lift_time=0.4)
+    assert len(ramp) == round(su.duration / DT)  # fold 0.5 s + tuck 0.7 s + lift 0.4 s at 50 Hz
+    fold = ramp[: round(su.fold_time / DT)]
+    assert np.allclose(fold[:, 0::3], crouch[0::3]) and np.allclose(fold[:, 1::3], crouch[1::3])  # hips, thighs hold
+    assert np.allclose(fold[-1, 2::3], su.tuck[2])  # calves folded
+    tucked = ramp[round((su.fold_time + su.tuck_time) / DT) - 1]
+    assert np.allclose(tucked, np.tile(su.tuck, 4), atol=1e-6)
+    assert np.allclose(ramp[-1], b.default, atol=1e-6)
+
+
+def test_fold_standup_levels_the_trunk_with_its_legs_and_hips():
+    """Nose up (gravity towards -x in the trunk frame): the front legs give way and the rear
+    legs push; rolled onto the right side (gravity towards -y): the right legs push, the
+    left ones give way and the hips turn to roll it back."""
+    names = go2.ACTUATED_JOINTS
+    su = StandUp(names, np.asarray(go2.default_joint_positions()))
+    t = su.cfg.fold_time + su.cfg.tuck_time + 0.5 * su.cfg.lift_time
+    level = su.targets(t, np.zeros(12), np.array([0.0, 0.0, -1.0])).reshape(4, 3)
+    nose_up = su.targets(t, np.zeros(12), np.array([-0.2, 0.0, -0.98])).reshape(4, 3) - level
+    right_down = su.targets(t, np.zeros(12), np.array([0.0, -0.2, -0.98])).reshape(4, 3) - level
+    front, left = np.array([go2.leg_signs(leg) for leg in go2.LEGS]).T
+    ext = nose_up[:, 2]  # calf: +1 per unit of extension (thigh -1/2)
+    assert np.allclose(ext, -0.4 * front) and np.allclose(nose_up[:, 1], 0.2 * front)
+    assert np.allclose(right_down[:, 2], -0.4 * left) and np.allclose(right_down[:, 0], 0.3)
+    assert [names[i] for i in range(12)][:3] == ["FL_hip_joint", "FL_thigh_joint", "FL_calf_joint"]
+    with pytest.raises(ValueError, match="linear"):
+        StandUp(["a", "b"], np.zeros(2))
+
+
+def test_a_fall_while_running_damps_until_a_reset_stands_it_up_again(tmp_path, realtime):
+    rec = Recorder()
+    b = _bridge(tmp_path, rec, standup_time=0.1)
+    robot = FakeRobot(b.on_state)
+    b.start()
+    try:
+        assert wait_for(lambda: b.state is P.BridgeState.RUNNING and b.policy_steps > 3, 2.0)
+        half = math.radians(50.0) / 2  # rolled 50 deg: beyond the default 45
+        robot.quat = [math.cos(half), math.sin(half), 0.0, 0.0]
+        assert wait_for(lambda: b.state is P.BridgeState.DAMPING, 1.0)
+        assert b.fault is P.Fault.FALLEN and "50 deg" in b.fault_detail
+        assert rec.cmds[-1][1].mode == P.CommandMode.DAMPING
+        time.sleep(0.1)
+        assert b.state is P.BridgeState.DAMPING  # latched: the robot lies as it fell
+        robot.quat = [1.0, 0.0, 0.0, 0.0]
+        operator = P.Sender()
+        b.on_operator(P.OperatorCommand(flags=P.OP_RESET, header=operator.next_header()).encode())
+        assert wait_for(lambda: b.state is P.BridgeState.RUNNING, 2.0)  # stood up again
+    finally:
+        robot.stop()
+        b.stop()
 
 
 def test_policy_steps_on_the_robot_clock_with_a_fast_state_stream(tmp_path, realtime):
@@ -634,7 +704,8 @@ def test_state_loss_gives_damping_within_two_periods(tmp_path, realtime):
     port = free_port()
     hub = peer(listen=port)
     meta = load_meta(write_policy(tmp_path))
-    zb = ZenohBridge(hub, "t_loss", meta, BridgeConfig(standup_time=0.2, operator_timeout=0.0)).start()
+    cfg = BridgeConfig(standup="linear", standup_time=0.2, operator_timeout=0.0)
+    zb = ZenohBridge(hub, "t_loss", meta, cfg).start()
     sess = peer(connect=port)
     robot = ZenohSimRobot(sess, "t_loss", watchdog=0.1)
     cmd_times: list[tuple[float, int]] = []
@@ -669,7 +740,7 @@ def test_malformed_flood_is_counted_and_publishes_nothing(tmp_path, realtime):
     port = free_port()
     hub = peer(listen=port)
     meta = load_meta(write_policy(tmp_path))
-    cfg = BridgeConfig(standup_time=1.0, operator_timeout=0.0, max_state_age=30.0, status_period=0.05)
+    cfg = BridgeConfig(standup="linear", standup_time=1.0, operator_timeout=0.0, max_state_age=30.0, status_period=0.05)
     zb = ZenohBridge(hub, "t_flood", meta, cfg).start()
     sess = peer(connect=port)
     cmds, statuses = [], []
@@ -870,7 +941,7 @@ def test_full_loop_sim_robot_and_bridge(tmp_path, realtime):
         assert wait_for(lambda: len(states) > 5, 20.0), "sim robot did not start"
         bridge = _spawn(
             "bridge", "--policy", str(policy), "--connect", f"tcp/127.0.0.1:{port}", "--namespace", ns,
-            "--standup-time", "1.0", "--max-state-age-ms", "100",
+            "--standup", "linear", "--standup-time", "1.0", "--max-state-age-ms", "100",
         )  # fmt: skip
         assert wait_for(lambda: any(c.mode == P.CommandMode.POLICY for _, c in cmds), 20.0), "policy never ran"
 
@@ -937,7 +1008,7 @@ def test_full_loop_wheel_robot_runs_the_shipped_wheel_policy(tmp_path, realtime)
         assert len(states[-1][1].q) == 16
         bridge = _spawn(
             "bridge", "--policy", str(WHEEL_POLICY), "--connect", f"tcp/127.0.0.1:{port}", "--namespace", ns,
-            "--standup-time", "0.5", "--max-state-age-ms", "100",
+            "--standup", "linear", "--standup-time", "0.5", "--max-state-age-ms", "100",
         )  # fmt: skip
         assert wait_for(lambda: any(c.mode == P.CommandMode.POLICY for _, c in cmds), 20.0), "policy never ran"
         standup = [c for _, c in cmds if c.mode == P.CommandMode.STANDUP]
@@ -971,7 +1042,8 @@ def test_shipped_caster_export_still_loads_and_runs_in_the_bridge(tmp_path):
     meta = load_meta(REPO / "resources" / "policies" / "caster_omni")
     assert meta.num_joints == 12 and all(meta.position_mask) and meta.velocity_action_scale == 0.0
     sent = []
-    bridge = Bridge(meta, BridgeConfig(standup_time=0.02, operator_timeout=0.0), lambda w, p: sent.append(p))
+    cfg = BridgeConfig(standup="linear", standup_time=0.02, operator_timeout=0.0)
+    bridge = Bridge(meta, cfg, lambda w, p: sent.append(p))
     s = P.Sender()
     for k in range(4):
         bridge._control_step(standing_state(s, stamp_ns=int(k * DT * 1e9)), time.monotonic())

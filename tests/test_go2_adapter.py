@@ -223,7 +223,7 @@ def test_full_loop_fake_go2_adapter_bridge(tmp_path):
 
     def start_bridge():
         return _spawn("bridge", "--policy", str(policy), "--connect", f"tcp/127.0.0.1:{port}", "--namespace", ns,
-                      "--standup-time", "1.0", "--max-state-age-ms", "100")  # fmt: skip
+                      "--standup", "linear", "--standup-time", "1.0", "--max-state-age-ms", "100")  # fmt: skip
 
     try:
         assert wait_for(lambda: len(truths) > 5, 30.0), "fake Go2 did not start"

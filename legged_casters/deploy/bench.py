@@ -83,6 +83,8 @@ def run(args: argparse.Namespace, secure: Path | None = None) -> dict[str, float
             *sec,
             "--namespace",
             ns,
+            "--standup",
+            "linear",
             "--standup-time",
             "0.5",
             "--operator-timeout",

@@ -16,9 +16,14 @@ policy.pt). The control loop and its safety rules (docs/deploy.md has the detail
   ``--clock local`` that thread also takes the control steps, at its own absolute
   deadlines, from the newest state.
 * WAITING: nothing is published until a valid state has arrived.
-* STANDUP: the leg targets ramp from the measured pose to ``default_joint_pos`` over
-  ``--standup-time`` with the export's gains (driving wheels are held still: velocity
-  target 0); then the policy runs (RUNNING).
+* STANDUP: with ``--standup fold`` (the default) the legs fold, tuck under the trunk and
+  lift to ``default_joint_pos`` (the lift takes ``--standup-time``) with attitude feedback
+  from the IMU, which stands a caster robot up from the floor
+  (legged_casters.deploy.standup); with ``--standup linear`` the leg targets ramp from
+  the measured pose to ``default_joint_pos`` over ``--standup-time``. Export gains;
+  driving wheels are held still (velocity target 0). Then the policy runs (RUNNING).
+* RUNNING with the trunk tilted more than ``--max-tilt-deg`` from upright (default 45;
+  0: off): fallen, DAMPING until an operator reset, which stands it up again.
 * State older than ``--max-state-age-ms`` (default 1.5 control periods) or a
   non-finite policy output: DAMPING (kp = 0, kd = ``--damping-kd``), published every
   control period, latched until an operator reset. A non-finite output is never
@@ -50,7 +55,15 @@ import numpy as np
 
 from legged_casters.deploy import protocol as P
 from legged_casters.deploy import transport
-from legged_casters.deploy.policy import ObservationBuilder, PolicyFormatError, PolicyMeta, PolicyRunner, load_meta
+from legged_casters.deploy.policy import (
+    ObservationBuilder,
+    PolicyFormatError,
+    PolicyMeta,
+    PolicyRunner,
+    load_meta,
+    projected_gravity,
+)
+from legged_casters.deploy.standup import StandUp, StandUpCfg
 
 MAX_STATE_RATE_HZ = 1000.0
 """The fastest robot state stream the bridge expects (a Go2 publishes LowState at 500 Hz)."""
@@ -68,7 +81,9 @@ def state_window(max_state_age: float) -> int:
 @dataclasses.dataclass
 class BridgeConfig:
     backend: str = "onnx"
-    standup_time: float = 2.0
+    standup: str = "fold"  # "fold": legged_casters.deploy.standup; "linear": a ramp to the default pose
+    standup_time: float = 2.0  # s: the fold stand-up's lift, or the whole linear ramp
+    max_tilt_deg: float = 45.0  # RUNNING with the trunk tilted more than this: FALLEN (0: off)
     max_state_age: float | None = None  # s; None: 1.5 control periods
     damping_kd: float = 1.0
     operator_timeout: float = 1.0  # s without operator messages -> zero velocity command; 0: never
@@ -169,6 +184,15 @@ class Bridge:
         self._waiting_since = 0.0
         if config.clock not in ("robot", "local"):
             raise ValueError(f"clock must be 'robot' or 'local', got {config.clock!r}")
+        if config.standup not in ("fold", "linear"):
+            raise ValueError(f"standup must be 'fold' or 'linear', got {config.standup!r}")
+        self.folding = (
+            StandUp(meta.joint_names, self.default, StandUpCfg(lift_time=config.standup_time))
+            if config.standup == "fold"
+            else None
+        )
+        self.min_upright = math.cos(math.radians(config.max_tilt_deg)) if config.max_tilt_deg > 0 else -2.0
+        """RUNNING needs the trunk's z axis to have at least this vertical component."""
         self.transitions: list[tuple[float, P.BridgeState, P.Fault]] = []
         self.fault_detail = ""
         """What tripped the last stale-state fault, in words (printed with the transition)."""
@@ -311,17 +335,30 @@ class Bridge:
             self.next_stamp = msg.header.stamp_ns + int(round(self.dt * 1e9))
         if self.state is P.BridgeState.STANDUP:
             self.standup_step += 1
-            n = max(1, int(round(self.cfg.standup_time / self.dt)))
-            alpha = min(1.0, self.standup_step / n)
-            q = np.where(self.position, self.standup_from + alpha * (self.default - self.standup_from), msg.q)
+            if self.folding is not None:
+                t = self.standup_step * self.dt
+                q = self.folding.targets(t, self.standup_from, projected_gravity(msg.quat))
+                done = t >= self.folding.duration
+            else:
+                n = max(1, int(round(self.cfg.standup_time / self.dt)))
+                alpha = min(1.0, self.standup_step / n)
+                q = self.standup_from + alpha * (self.default - self.standup_from)
+                done = alpha >= 1.0
             # Wheels (velocity joints) are held still: dq target 0 with their kd.
+            q = np.where(self.position, q, msg.q)
             self._send_command(P.CommandMode.STANDUP, self._clip_q(q), self.kp, self.kd, seq)
             self.rate.step(now)
-            if alpha >= 1.0:
+            if done:
                 self._enter(P.BridgeState.RUNNING)
                 self.running_steps = 0  # the policy's gait clock starts with the policy
             return
         # RUNNING
+        upright = -float(projected_gravity(msg.quat)[2])
+        if upright < self.min_upright:
+            tilt = math.degrees(math.acos(max(-1.0, min(1.0, upright))))
+            self.fault_detail = f"trunk tilted {tilt:.0f} deg from upright (limit {self.cfg.max_tilt_deg:g})"
+            self._enter(P.BridgeState.DAMPING, P.Fault.FALLEN)
+            return
         if self.cfg.operator_timeout > 0 and now - self._operator_arrival > self.cfg.operator_timeout:
             commands = np.zeros(3)
         else:
@@ -471,7 +508,20 @@ def build_parser() -> argparse.ArgumentParser:
         help="export directory (or its policy.yaml); default: the shipped resources/policies/caster_omni/",
     )
     p.add_argument("--backend", choices=("onnx", "torchscript"), default="onnx")
-    p.add_argument("--standup-time", type=float, default=2.0, help="stand-up ramp duration (s)")
+    p.add_argument(
+        "--standup",
+        choices=("fold", "linear"),
+        default="fold",
+        help="fold: fold, tuck and lift with attitude feedback (stands a caster robot up from the floor); "
+        "linear: ramp from the measured pose to the default pose",
+    )
+    p.add_argument("--standup-time", type=float, default=2.0, help="s: the fold stand-up's lift, or the linear ramp")
+    p.add_argument(
+        "--max-tilt-deg",
+        type=float,
+        default=45.0,
+        help="trunk tilt from upright that counts as a fall while the policy runs (damping until reset; 0: off)",
+    )
     p.add_argument("--max-state-age-ms", type=float, default=None, help="default: 1.5 control periods")
     p.add_argument("--damping-kd", type=float, default=1.0)
     p.add_argument("--operator-timeout", type=float, default=1.0, help="s; 0 disables")
@@ -512,7 +562,7 @@ def _print_transitions(bridge: Bridge, seen: int) -> int:
         _, state, fault = changes[k]
         before = changes[k - 1][1].name if k else "START"
         reason = f" ({fault.name})" if fault != P.Fault.NONE else ""
-        if fault == P.Fault.STALE_STATE and bridge.fault_detail:
+        if fault in (P.Fault.STALE_STATE, P.Fault.FALLEN) and bridge.fault_detail:
             reason += f": {bridge.fault_detail}"
         print(f"bridge: {before} -> {state.name}{reason}", flush=True)
     return len(changes)
@@ -534,7 +584,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     cfg = BridgeConfig(
         backend=args.backend,
+        standup=args.standup,
         standup_time=args.standup_time,
+        max_tilt_deg=args.max_tilt_deg,
         max_state_age=None if args.max_state_age_ms is None else args.max_state_age_ms / 1e3,
         damping_kd=args.damping_kd,
         operator_timeout=args.operator_timeout,

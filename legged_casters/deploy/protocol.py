@@ -84,9 +84,9 @@ class PropulsionMode(enum.IntEnum):
 
 class BridgeState(enum.IntEnum):
     WAITING = 0  # no valid robot state yet: nothing is published
-    STANDUP = 1  # ramping from the measured pose to the default pose
+    STANDUP = 1  # standing up from the measured pose to the default pose
     RUNNING = 2  # policy in control
-    DAMPING = 3  # fault (stale state, non-finite policy output): damping until reset
+    DAMPING = 3  # fault (stale state, non-finite policy output, fallen): damping until reset
     STOPPED = 4  # operator stop latched: damping until reset
 
 
@@ -96,6 +96,7 @@ class Fault(enum.IntEnum):
     NONFINITE_ACTION = 2
     OPERATOR_STOP = 3
     INTERNAL_ERROR = 4  # an unexpected exception in the control loop
+    FALLEN = 5  # the trunk tilted beyond the bridge's --max-tilt-deg while the policy ran
 
 
 REJECT_REASONS: tuple[str, ...] = ("malformed", "version", "nonfinite", "out_of_range", "out_of_order")

@@ -1,0 +1,78 @@
+"""The bridge's folding stand-up on the simulated caster robot: from the floor, in process
+and through the process chain (scripts/standup_check.py measures the same at scale)."""
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from legged_casters.deploy import protocol as P
+from legged_casters.deploy.bridge import SHIPPED_POLICY
+from legged_casters.deploy.policy import PolicyRunner, load_meta
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _load_check():
+    spec = importlib.util.spec_from_file_location("standup_check", ROOT / "scripts" / "standup_check.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["standup_check"] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture(scope="module")
+def check():
+    return _load_check()
+
+
+@pytest.fixture(scope="module")
+def shipped():
+    meta = load_meta(SHIPPED_POLICY)
+    return meta, PolicyRunner(meta, "onnx")
+
+
+def test_a_collapsed_robot_stands_up_with_the_fold_and_not_with_the_ramp(check, shipped):
+    """A robot that collapsed under damping lies on its belly (trunk about 6 cm up): the fold
+    stand-up stands it (height within 3 cm, tilt under 10 deg) within 4 s; the linear ramp
+    leaves it sitting on its rear casters (docs/deploy.md)."""
+    meta, runner = shipped
+    result = {}
+    for standup in ("fold", "linear"):
+        chain = check.Chain(meta, runner, standup, startup="damping")
+        chain.run(3.0)
+        assert chain.robot.data.qpos[2] < 0.12  # lying
+        chain.attach_bridge()
+        result[standup] = chain.time_to_stand(4.0)
+        assert chain.bridge.fault is not P.Fault.INTERNAL_ERROR
+    assert result["fold"] is not None and result["fold"] < 3.5
+    assert result["linear"] is None
+
+
+def test_the_bridge_damps_a_fallen_robot_and_a_reset_runs_the_stand_up_again(check, shipped):
+    meta, runner = shipped
+    chain = check.Chain(meta, runner, "fold", startup="damping")
+    chain.run(1.0)
+    chain.attach_bridge()
+    assert chain.time_to_stand(4.0) is not None
+    chain.run(1.0, push=np.array([0.0, 400.0, 0.0]), push_s=0.3)  # a hard shove sideways
+    chain.run(1.0)
+    assert chain.bridge.state is P.BridgeState.DAMPING and chain.bridge.fault is P.Fault.FALLEN
+    n = len(chain.bridge.transitions)
+    chain.operate(reset=True)
+    chain.run(0.5)
+    states = [s for _, s, _ in chain.bridge.transitions[n:]]
+    assert states[:2] == [P.BridgeState.WAITING, P.BridgeState.STANDUP]
+
+
+def test_the_process_chain_stands_up_from_lying_and_skates(check):
+    """sim_robot (started damped: it lies) -> bridge (fold stand-up) -> operator vx 0.5."""
+    args = check.build_parser().parse_args(["--trials", "0", "--falls", "0"])
+    r = check.loopback(args, 0)
+    assert r is not None, "the bridge never ran"
+    print(r)
+    assert r["lying_z"] < 0.12 and r["stand_s"] < 4.0
+    assert r["fault"] == "NONE" and r["state"] == "RUNNING"
+    assert r["along_m"] > 2.0  # 10 s at 0.5 m/s
