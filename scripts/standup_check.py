@@ -28,7 +28,8 @@ least 1.5 m travelled.
 
 **Loopback** (``--loopback N``): the real chain, each part its own process over zenoh on
 this machine: ``sim_robot --startup damping`` (it collapses from its keyframe for 3 s),
-then the bridge (shipped policy, ``--standup``), then an operator at 20 Hz: vx 0 until
+then the bridge (``--policy``, ``--standup``; ``--max-state-age-ms 100``, so that a busy
+machine cannot end the run on a late state), then an operator at 20 Hz: vx 0 until
 the bridge runs and 1 s more, then vx 0.5 for 10 s. Measured from the simulator's truth
 stream: the time from the bridge's start of the stand-up to standing, and over the
 10 s the distance along the start heading, the lateral drift from that line and the
@@ -250,7 +251,9 @@ def loopback(args, i: int) -> dict | None:
         operate(0.0, 3.0)  # the robot collapses under damping
         lying_z = truths[-1].pos[2]
         procs.append(subprocess.Popen(
-            module_cmd("bridge", "--policy", str(args.policy), "--standup", args.standup, *common),
+            module_cmd(
+                "bridge", "--policy", str(args.policy), "--standup", args.standup, "--max-state-age-ms", "100", *common
+            ),
             stdout=subprocess.DEVNULL,
         ))  # fmt: skip
 
@@ -262,6 +265,9 @@ def loopback(args, i: int) -> dict | None:
         operate(0.0, 10.0, until=lambda: state_is(P.BridgeState.RUNNING))
         operate(0.0, 1.0)
         if not state_is(P.BridgeState.RUNNING):
+            last = statuses[-1] if statuses else None
+            why = "no status" if last is None else f"{P.BridgeState(last.state).name} ({P.Fault(last.fault).name})"
+            print(f"[standup_check] the bridge is not running: {why}", flush=True)
             return None
         rise = truths[n0:]
         stand_t = next((t.sim_time - rise[0].sim_time for t in rise if t.pos[2] > 0.3), math.nan)

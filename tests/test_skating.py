@@ -137,10 +137,11 @@ def test_the_actor_computes_the_same_prior_from_its_observation(env, uphill):
             obs, *_ = env.step(torch.zeros(3, 12))
         p = env.actor_prior()
         prior = GaitPrior(p["cfg"], p["slices"], p["action_scale"])
-        expect = env.gait_offsets() / env.cfg.control.action_scale
-        none = obs["policy"][:, :0]  # no speed feedback: the velocity is not read
-        assert torch.allclose(prior(obs["policy"], none), expect, atol=1e-5)
-        assert torch.jit.script(prior)(obs["policy"], none).sub(expect).abs().max() < 1e-5
+        assert prior.needs_velocity  # caster_omni's prior has speed feedback
+        expect = env.gait_offsets() / env.cfg.control.action_scale  # fed the simulator's velocity
+        velocity = env.base_lin_vel  # what the actor's estimate stands for
+        assert torch.allclose(prior(obs["policy"], velocity), expect, atol=1e-5)
+        assert torch.jit.script(prior)(obs["policy"], velocity).sub(expect).abs().max() < 1e-5
     finally:
         env.cfg.gait.uphill_gain, env.cfg.gait.uphill_deadband = 0.0, 0.06
         env.noise_vec.copy_(noise)
@@ -161,9 +162,10 @@ def test_ppo_learns_a_residual_around_the_prior(tmp_path):
         last.bias.zero_()
     e.set_commands([0.6, 0.0, 0.0])
     obs = e.compute_observations()
-    expect = e.gait_offsets() / e.cfg.control.action_scale
     with torch.no_grad():
-        assert torch.allclose(actor(obs), expect, atol=1e-6)
+        estimate = actor.estimate(obs)  # the prior's speed feedback reads the actor's own estimate
+        expect = gait_prior(e.cfg.gait, e.commands, e.mode_mask, torch.sin(e.gait_phase), velocity=estimate)
+        assert torch.allclose(actor(obs), expect / e.cfg.control.action_scale, atol=1e-6)
         init_std = registry.get_task(TASK).train_cfg.policy.init_noise_std
         assert init_std < 0.5  # the low initial noise (docs/tasks.md)
         assert float(actor.distribution.std.mean()) == pytest.approx(init_std, rel=0.25)
@@ -203,7 +205,9 @@ def test_the_prior_alone_skates_in_every_direction():
         evaluate.Scenario(name, ((0.0, cmd),), 4.0, 2.0)
         for name, cmd in (("fwd", (0.5, 0, 0)), ("back", (-0.5, 0, 0)), ("left", (0, 0.4, 0)), ("ccw", (0, 0, 0.8)))
     )
-    e = spec.env_class(evaluate.eval_env_cfg(spec.env_cfg, scen))
+    cfg = copy.deepcopy(spec.env_cfg)
+    cfg.gait.speed_feedback = 0.0  # the command-only prior (the feedback's own test is below)
+    e = spec.env_class(evaluate.eval_env_cfg(cfg, scen))
     p = e.actor_prior()
     prior = GaitPrior(p["cfg"], p["slices"], p["action_scale"])
     res = {r.name: r for r in evaluate.run_scenarios(e, lambda obs: prior(obs["policy"], obs["policy"][:, :0]), scen)}

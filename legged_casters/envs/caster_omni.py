@@ -393,7 +393,12 @@ def caster_omni_cfg() -> CasterOmniCfg:
     cfg = CasterOmniCfg()
     cfg.sim.timestep = 0.005
     cfg.sim.decimation = 4
-    cfg.gait = GaitPriorCfg(enabled=True, frequency=2.0, amplitude=0.2, tilt=0.2, thigh_share=0.0, full_speed=0.25)
+    # The prior pushes for the speed error of the actor's own velocity estimate (docs/tasks.md,
+    # "Speed feedback in the prior"; run 22): without it, it pushes as hard for 0.5 m/s as for 2.
+    cfg.gait = GaitPriorCfg(
+        enabled=True, frequency=2.0, amplitude=0.2, tilt=0.2, thigh_share=0.0, full_speed=0.25,
+        speed_feedback=1.0, command_share=0.3,
+    )  # fmt: skip
     cfg.rewards = _skate_rewards()
     cfg.history_length = 10  # the actor cannot measure its speed; 0.2 s of proprioception lets it infer it
     cfg.commands.ranges = CommandRanges(lin_vel_x=(-1.0, 1.0), lin_vel_y=(-0.5, 0.5), ang_vel_yaw=(-1.0, 1.0))
