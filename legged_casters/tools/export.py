@@ -155,7 +155,8 @@ def estimator_spec(actor: nn.Module | None) -> dict:
         "estimator": {
             "output": "base_lin_vel",
             "frame": "trunk, m/s",
-            "input": "the whole policy observation, normalised; the actor's MLP reads its output",
+            "input": "the whole policy observation, normalised; the actor's MLP reads its output, and so does "
+            "the prior where it has speed_feedback",
             "note": "inside policy.pt / policy.onnx: the robot side feeds the observation as for any policy",
         }
     }
