@@ -313,6 +313,15 @@ def test_play_runs_an_exported_onnx_policy(exported, tmp_path):
     assert data["command"][0, 1] == pytest.approx(0.4)  # slalom starts to the left
 
 
+def test_play_takes_an_export_folder_like_evaluate_and_the_bridge(exported, tmp_path):
+    out, _ = exported
+    argv = ["--policy", str(out), "--no_video", "--headless", "--duration", "0.2", "--num_envs", "1"]
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert play.main([*argv, "--out", str(tmp_path)]) == 0, buf.getvalue()
+    assert any(tmp_path.glob("policy_*_velocity.png"))
+
+
 # --- bad input fails before any simulation ----------------------------------------------------------------
 @pytest.mark.parametrize(
     ("argv", "message"),

@@ -114,8 +114,12 @@ def _resolve_source(args: argparse.Namespace, default_log_root: Path | None) -> 
         out = Path(args.out) if args.out else root / experiment / f"play_{args.policy}"
         return PolicySource(args.policy, task, spec, env_cfg, train_cfg, out, args.policy)
     path = Path(args.policy).expanduser()
+    if path.is_dir() and (path / "policy.pt").is_file():  # an export folder, as evaluate.py and the bridge take it
+        path = path / "policy.pt"
     if path.suffix not in (".pt", ".onnx"):
-        raise UsageError(f"--policy {args.policy!r}: expected zero, random, or an exported policy.pt / policy.onnx")
+        raise UsageError(
+            f"--policy {args.policy!r}: expected zero, random, an exported policy.pt / policy.onnx or its folder"
+        )
     if not path.is_file():
         raise UsageError(f"--policy {path}: no such file")
     if path.suffix == ".pt" and common.is_training_checkpoint(path):
