@@ -12,8 +12,8 @@ clock are relaxed (the staleness limit, the operator timeout); docs/deploy.md te
 those over zenoh.
 
 **Lying starts** (``--trials N``): each start is a state of the shipped policy skating
-in caster_omni under random commands (vx in [-1.5, 1.5] m/s, the training's vy and wz,
-a fifth of them zero) at a random moment, then 3 s of damping (kp 0, kd 1, what a
+in caster_omni under a random command each (vx in [-1.5, 1.5] m/s, the training's vy
+and wz, a fifth of them zero) at a random moment, then 3 s of damping (kp 0, kd 1, what a
 robot does without commands): the pose a damped robot collapses into. Then the bridge
 starts from WAITING with ``--standup`` and the robot has 4 s from the stand-up's first
 command. Standing: trunk within 3 cm of the stand keyframe's height and tilted less
@@ -54,7 +54,7 @@ from legged_casters.deploy import protocol as P
 from legged_casters.deploy import transport
 from legged_casters.deploy.bench import module_cmd
 from legged_casters.deploy.bridge import SHIPPED_POLICY, Bridge, BridgeConfig
-from legged_casters.deploy.policy import PolicyRunner, load_meta
+from legged_casters.deploy.policy import PolicyRunner, load_meta, tilt_deg
 from legged_casters.deploy.sim_robot import SimRobot
 from legged_casters.robot import build
 from legged_casters.tools.evaluate import EVAL_SETTINGS
@@ -69,7 +69,6 @@ def skating_states(n: int, seed: int, policy_dir: Path) -> tuple[np.ndarray, np.
     cfg, _ = registry.task_configs(
         "caster_omni", {**EVAL_SETTINGS, "num_envs": n, "episode_length_s": 60.0, "sim.backend": "cpu", "seed": seed}
     )
-    cfg.commands.resampling_time = 2.0
     cfg.commands.ranges.lin_vel_x = (-1.5, 1.5)
     env = registry.get_task("caster_omni").env_class(cfg)
     try:
@@ -78,11 +77,11 @@ def skating_states(n: int, seed: int, policy_dir: Path) -> tuple[np.ndarray, np.
         when = rng.integers(25, 300, n)
         still = rng.random(n) < 0.2
         qpos, qvel = np.zeros((n, env.sim.qpos.shape[1])), np.zeros((n, env.sim.qvel.shape[1]))
+        cmd = env.commands.clone()  # each robot keeps the command its reset drew (set_commands stops resampling)
+        cmd[torch.as_tensor(still)] = 0.0
+        env.set_commands(cmd)
         obs = env.get_observations()
         for k in range(int(when.max()) + 1):
-            cmd = env.commands.clone()
-            cmd[torch.as_tensor(still)] = 0.0
-            env.set_commands(cmd)
             with torch.no_grad():
                 obs, _, _, _ = env.step(module(obs["policy"]))
             for i in np.nonzero(when == k)[0]:
@@ -95,8 +94,8 @@ def skating_states(n: int, seed: int, policy_dir: Path) -> tuple[np.ndarray, np.
 class Chain:
     """SimRobot + Bridge in one process, stepped on the robot's 2 ms clock."""
 
-    def __init__(self, meta, runner, standup: str, qpos=None, qvel=None, startup: str = "damping"):
-        self.robot = SimRobot(self._from_robot, startup=startup, watchdog=1e9)
+    def __init__(self, meta, runner, standup: str, qpos=None, qvel=None):
+        self.robot = SimRobot(self._from_robot, startup="damping", watchdog=1e9)
         self.bridge: Bridge | None = None
         self.meta, self.runner, self.standup = meta, runner, standup
         m, d = self.robot.model, self.robot.data
@@ -136,9 +135,7 @@ class Chain:
 
     def tilt(self) -> float:
         """Degrees between the trunk's z axis and the vertical."""
-        d = self.robot.data
-        upright = 1.0 - 2.0 * (d.qpos[4] ** 2 + d.qpos[5] ** 2)
-        return math.degrees(math.acos(max(-1.0, min(1.0, upright))))
+        return tilt_deg(self.robot.data.qpos[3:7])
 
     def upright(self) -> bool:
         """Skating upright: tilted less than MAX_TILT_DEG, trunk above 0.25 m (it skates higher than it stands)."""
@@ -182,7 +179,7 @@ def lying_starts(args, meta, runner) -> tuple[int, list[float], list[str]]:
 def fall_recovery(args, meta, runner, rng) -> tuple[int, list[str]]:
     ok, notes = 0, []
     for i in range(args.falls):
-        chain = Chain(meta, runner, args.standup, startup="damping")
+        chain = Chain(meta, runner, args.standup)
         chain.run(1.0)
         chain.attach_bridge()
         chain.run(4.0)
@@ -200,7 +197,8 @@ def fall_recovery(args, meta, runner, rng) -> tuple[int, list[str]]:
         chain.run(2.0)
         lying = chain.tilt()
         chain.operate(0.0, reset=True)
-        chain.run(3.2 + 1.0)  # the stand-up, then a second of policy at vx 0
+        fold = chain.bridge.folding
+        chain.run((fold.duration if fold else chain.bridge.cfg.standup_time) + 1.0)  # stand-up, 1 s of vx 0
         chain.operate(0.5)
         x0 = chain.robot.data.qpos[:2].copy()
         chain.run(5.0)

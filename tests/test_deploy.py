@@ -446,7 +446,7 @@ def test_fold_standup_levels_the_trunk_with_its_legs_and_hips():
     ext = nose_up[:, 2]  # calf: +1 per unit of extension (thigh -1/2)
     assert np.allclose(ext, -0.4 * front) and np.allclose(nose_up[:, 1], 0.2 * front)
     assert np.allclose(right_down[:, 2], -0.4 * left) and np.allclose(right_down[:, 0], 0.3)
-    assert [names[i] for i in range(12)][:3] == ["FL_hip_joint", "FL_thigh_joint", "FL_calf_joint"]
+    assert list(names[:3]) == ["FL_hip_joint", "FL_thigh_joint", "FL_calf_joint"]
     with pytest.raises(ValueError, match="linear"):
         StandUp(["a", "b"], np.zeros(2))
 

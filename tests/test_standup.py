@@ -41,7 +41,7 @@ def test_a_collapsed_robot_stands_up_with_the_fold_and_not_with_the_ramp(check, 
     meta, runner = shipped
     result = {}
     for standup in ("fold", "linear"):
-        chain = check.Chain(meta, runner, standup, startup="damping")
+        chain = check.Chain(meta, runner, standup)
         chain.run(3.0)
         assert chain.robot.data.qpos[2] < 0.12  # lying
         chain.attach_bridge()
@@ -53,7 +53,7 @@ def test_a_collapsed_robot_stands_up_with_the_fold_and_not_with_the_ramp(check, 
 
 def test_the_bridge_damps_a_fallen_robot_and_a_reset_runs_the_stand_up_again(check, shipped):
     meta, runner = shipped
-    chain = check.Chain(meta, runner, "fold", startup="damping")
+    chain = check.Chain(meta, runner, "fold")
     chain.run(1.0)
     chain.attach_bridge()
     assert chain.time_to_stand(4.0) is not None

@@ -62,6 +62,7 @@ from legged_casters.deploy.policy import (
     PolicyRunner,
     load_meta,
     projected_gravity,
+    tilt_deg,
 )
 from legged_casters.deploy.standup import StandUp, StandUpCfg
 
@@ -191,8 +192,6 @@ class Bridge:
             if config.standup == "fold"
             else None
         )
-        self.min_upright = math.cos(math.radians(config.max_tilt_deg)) if config.max_tilt_deg > 0 else -2.0
-        """RUNNING needs the trunk's z axis to have at least this vertical component."""
         self.transitions: list[tuple[float, P.BridgeState, P.Fault]] = []
         self.fault_detail = ""
         """What tripped the last stale-state fault, in words (printed with the transition)."""
@@ -353,9 +352,7 @@ class Bridge:
                 self.running_steps = 0  # the policy's gait clock starts with the policy
             return
         # RUNNING
-        upright = -float(projected_gravity(msg.quat)[2])
-        if upright < self.min_upright:
-            tilt = math.degrees(math.acos(max(-1.0, min(1.0, upright))))
+        if self.cfg.max_tilt_deg > 0 and (tilt := tilt_deg(msg.quat)) > self.cfg.max_tilt_deg:
             self.fault_detail = f"trunk tilted {tilt:.0f} deg from upright (limit {self.cfg.max_tilt_deg:g})"
             self._enter(P.BridgeState.DAMPING, P.Fault.FALLEN)
             return

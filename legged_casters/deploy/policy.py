@@ -304,6 +304,12 @@ def projected_gravity(quat_wxyz) -> np.ndarray:
     return -np.array([2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)])
 
 
+def tilt_deg(quat_wxyz) -> float:
+    """Degrees between the frame's z axis and the vertical (0: upright, 180: upside down)."""
+    upright = -float(projected_gravity(quat_wxyz)[2])
+    return math.degrees(math.acos(max(-1.0, min(1.0, upright))))
+
+
 class ObservationBuilder:
     """Actor observation from robot state, operator input and the previous action."""
 
