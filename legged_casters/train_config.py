@@ -44,6 +44,10 @@ class EstimatorCfg:
     epochs: int = field(default=2, metadata={"min": 1})
     """Passes of Adam over each rollout, after PPO's update."""
     mini_batches: int = field(default=4, metadata={"min": 1})
+    skip_terms: tuple[str, ...] = ()
+    """Policy observation terms the estimator does not read (e.g. ["commands"]: an estimate
+    that reads the command can learn "the speed is what was asked", which speed feedback
+    then cannot tell from the truth)."""
 
 
 @dataclass
@@ -103,11 +107,17 @@ class TrainCfg:
                 raise ValueError("the velocity estimator needs a task with an actor prior and its observation columns")
             if not est.actor_history and history is None:
                 raise ValueError("estimator.actor_history=false needs a proprio_history term in the policy observation")
+            unknown = [t for t in est.skip_terms if t not in obs_columns]
+            if unknown:
+                raise ValueError(
+                    f"estimator.skip_terms: {unknown} are not policy observation terms; choose from {list(obs_columns)}"
+                )
             cfg["actor"]["estimator"] = {
                 "hidden_dims": list(est.hidden_dims),
                 "out_dim": 3,
                 "actor_history": est.actor_history,
                 "history_slice": list(history) if history else None,
+                "skip_slices": [list(obs_columns[t]) for t in est.skip_terms],
             }
             cfg["algorithm"]["class_name"] = "legged_casters.learning.estimator.EstimatorPPO"
             cfg["algorithm"].update(

@@ -223,3 +223,29 @@ def test_sim2sim_conditions_keep_the_control_period():
     worse = E.ScenarioResult("vx +0.5", "track", (0.5, 0.0, 0.0), {}, {"vx": 0.3, "vy": 0.05, "wz": 0.1}, falls=1)
     table = E.format_sim2sim([("5 ms", [base], [("c", True, "x")]), ("latency", [worse], [("c", False, "y")])])
     assert "| latency | 0/1 | 1 | +0.200 (vx +0.5 vx) | -0.100 (vx +0.5 wz) |" in table
+
+
+def test_the_training_evaluation_pushes_robots_at_each_scenarios_interval():
+    """The quick evaluation (train.py's model_best choice) has a pushed-robots scenario;
+    pushes come at each random scenario's own interval and only its falls are counted."""
+    from legged_casters.tools import evaluate as E
+
+    pushes = [s for s in E.QUICK if s.kind == "random"]
+    assert len(pushes) == 1 and pushes[0].push_interval < pushes[0].duration and pushes[0].copies >= 4
+    spec = registry.get_task("caster_omni")
+    still = [f"commands.ranges.{k}=[0, 0]" for k in ("lin_vel_x", "lin_vel_y", "ang_vel_yaw")]
+    cfg, _ = registry.task_configs("caster_omni", still)  # random commands that are all zero: |error| = |v|
+    often = E.Scenario("often", ((0.0, (0.0, 0.0, 0.0)),), 3.0, 0.0, copies=2, random_commands=True,
+                       kind="random", push_interval=0.5)  # fmt: skip
+    never = E.Scenario("never", ((0.0, (0.0, 0.0, 0.0)),), 3.0, 0.0, copies=2, random_commands=True,
+                       kind="random", push_interval=100.0)  # fmt: skip
+    env = spec.env_class(E.eval_env_cfg(cfg, (often, never)))
+    try:
+        stand = lambda obs: torch.zeros(env.num_envs, 12)  # noqa: E731  the nominal pose, no prior
+        res = {r.name: r for r in E.run_scenarios(env, stand, (often, never))}
+    finally:
+        env.close()
+    moved = {n: r.err["vx"] + r.err["vy"] for n, r in res.items()}
+    assert moved["often"] > 0.1 and moved["never"] < 0.2 * moved["often"], moved
+    summary = E.summary(list(res.values()))
+    assert summary["falls"] == sum(r.falls for r in res.values()) and "vx_error" not in summary

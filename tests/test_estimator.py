@@ -112,6 +112,34 @@ def test_export_carries_the_estimator(env, tmp_path):
     assert np.allclose(out, expect.numpy(), atol=1e-5)
 
 
+def test_an_estimator_that_skips_the_command_never_reads_it_trained_or_exported(env, tmp_path):
+    train_cfg = copy.deepcopy(registry.get_task(TASK).train_cfg)
+    train_cfg.estimator.skip_terms = ("commands",)
+    actor = export.build_actor(env, train_cfg)
+    with torch.no_grad():
+        actor.obs_normalizer.update(env.get_observations()["policy"])
+    cols = env.policy_obs_columns()
+    obs = env.get_observations()
+    with torch.no_grad():
+        assert torch.equal(actor.estimate(_perturb(obs, cols["commands"])), actor.estimate(obs))
+        assert not torch.allclose(actor.estimate(_perturb(obs, cols["joint_vel"])), actor.estimate(obs))
+        assert not torch.allclose(actor(_perturb(obs, cols["commands"])), actor(obs))  # the MLP and prior still do
+    meta = export.policy_metadata(env, TASK, actor)
+    assert "except commands" in meta["estimator"]["input"]
+    paths = export.export_policy(actor.eval(), meta, tmp_path)
+    module = torch.jit.load(str(paths["torchscript"]))
+    moved = _perturb(obs, cols["commands"])["policy"]
+    with torch.no_grad():
+        assert torch.allclose(module.estimate(moved), module.estimate(obs["policy"]))
+        assert torch.allclose(module(moved), actor(_perturb(obs, cols["commands"])), atol=1e-5)
+    sess = ort.InferenceSession(str(paths["onnx"]))
+    (out,) = sess.run(None, {"obs": moved.numpy()})
+    assert np.allclose(out, actor(_perturb(obs, cols["commands"])).detach().numpy(), atol=1e-5)
+    train_cfg.estimator.skip_terms = ("speed",)
+    with pytest.raises(ValueError, match="estimator.skip_terms.*not policy observation terms"):
+        train_cfg.for_env(env)
+
+
 def test_the_history_holds_the_observation_as_the_policy_saw_it():
     """With observation noise on, the newest history slot is the previous observation's
     (noisy) proprioceptive terms, not the clean state."""

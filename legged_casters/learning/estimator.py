@@ -26,15 +26,28 @@ TARGET_GROUP = "estimator_target"
 
 
 class VelocityEstimator(torch.nn.Module):
-    """Normalised policy observation (n, obs_dim) -> trunk velocity estimate (n, out_dim)."""
+    """Normalised policy observation (n, obs_dim) -> trunk velocity estimate (n, out_dim).
 
-    def __init__(self, obs_dim: int, out_dim: int, hidden_dims: list[int], activation: str = "elu"):
+    `skip`: [start, stop) column ranges of the observation it does not read (e.g. the
+    command); None or empty: it reads all of them."""
+
+    def __init__(
+        self, obs_dim: int, out_dim: int, hidden_dims: list[int], activation: str = "elu",
+        skip: list[list[int]] | None = None,
+    ):  # fmt: skip
         super().__init__()
         self.out_dim = int(out_dim)
-        self.net = MLP(obs_dim, out_dim, list(hidden_dims), activation)
+        keep = torch.ones(obs_dim, dtype=torch.bool)
+        for start, stop in skip or ():
+            if not 0 <= start < stop <= obs_dim:
+                raise ValueError(f"estimator skip columns [{start}, {stop}) outside the {obs_dim} observations")
+            keep[start:stop] = False
+        # not saved in checkpoints: it follows from the train config, and older runs (no skip) load as before
+        self.register_buffer("columns", keep.nonzero().flatten(), persistent=False)
+        self.net = MLP(len(self.columns), out_dim, list(hidden_dims), activation)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.net(x)
+        return self.net(x[:, self.columns])
 
 
 class EstimatorPPO(PPO):

@@ -93,7 +93,9 @@ class PriorMLPModel(MLPModel):
         self.estimator = None
         if estimator is not None:
             out_dim, activation = int(estimator.get("out_dim", 3)), kwargs.get("activation", "elu")
-            self.estimator = VelocityEstimator(self.obs_dim, out_dim, estimator["hidden_dims"], activation)
+            self.estimator = VelocityEstimator(
+                self.obs_dim, out_dim, estimator["hidden_dims"], activation, estimator.get("skip_slices")
+            )
             self.register_buffer("mlp_columns", self._mlp_columns(), persistent=False)
 
     def _mlp_columns(self) -> torch.Tensor:

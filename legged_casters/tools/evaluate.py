@@ -46,6 +46,8 @@ class Scenario:
     random_commands: bool = False
     """Commands drawn from the task's ranges every 5 s instead of `segments`; pushes on."""
     kind: str = "track"
+    push_interval: float = 8.0
+    """Seconds between pushes of a random-commands scenario (PUSH_VEL each)."""
 
     def command(self, t: float) -> tuple[float, float, float]:
         cmd = self.segments[0][1]
@@ -83,7 +85,12 @@ QUICK = tuple(
     Scenario(s.name, s.segments, 5.0, 2.0)
     for s in TRACKING
     if s.name in ("vx +0.5", "vx -0.5", "vx +1.0", "vy +0.4", "vy -0.4", "wz +0.8", "wz -0.8")
-)
+) + (
+    # 8 robots, one random command each, pushed every 1.5 s: only its falls count (the
+    # training's model_best must not be a checkpoint that tracks well and falls when pushed)
+    Scenario("pushes", ((0.0, (0.0, 0.0, 0.0)),), 5.0, 0.0, copies=8, random_commands=True, kind="random",
+             push_interval=1.5),
+)  # fmt: skip
 TOP_SPEED = {"forward": 2.5, "backward": 3.5}
 """m/s, the open-loop top speeds of the caster model, rounded down (scripts/top_speed.py, docs/tasks.md)."""
 SLALOM_PERIOD_S = 2.25
@@ -140,7 +147,8 @@ SIGN_CHANGE_MARGIN = 0.05
 """m/s: after the Fig. 6 step, the sign has changed once vx exceeds this (not mere jitter)."""
 MODE_SWIVEL_RATIO = 0.2
 MODE_VX_ERROR = 0.25
-PUSH_INTERVAL_S, PUSH_VEL = 8.0, 0.5
+PUSH_VEL = 0.5
+"""m/s: each push adds U(-PUSH_VEL, PUSH_VEL) to the trunk's vx and vy."""
 
 
 EVAL_SETTINGS = {
@@ -284,13 +292,17 @@ def run_scenarios(env, policy: Policy, scenarios=QUICK, seed: int = 0, estimator
     steps = int(round(max(s.duration for s in scenarios) / env.dt))
     cmds_all, alive = _schedule(scenarios, owner, steps, env.dt, env.command_ranges, gen)
     random_ids = torch.tensor([j for j, i in enumerate(owner) if scenarios[i].random_commands], dtype=torch.long)
-    push_every = int(round(PUSH_INTERVAL_S / env.dt))
+    push_every = torch.tensor([max(1, int(round(scenarios[owner[j]].push_interval / env.dt))) for j in random_ids])
     vel_log = torch.zeros(steps, n, 3)
     power_log = torch.zeros(steps, n)  # positive mechanical power of all actuated joints (W)
     pos_log = torch.zeros(steps, n, 2)
     swivel_log = torch.zeros(steps, n, 4) if hasattr(env, "swivel_vel") else None
     yaw_log = torch.zeros(steps, n)
     est_log = torch.zeros(steps, n) if estimator is not None else None  # squared estimate error
+    # How much the estimate follows the command it reads: its vx with the vx command 0.5 m/s
+    # higher, minus its vx, per m/s (0 for an estimator that does not read the command).
+    gain_log = torch.zeros(steps, n) if estimator is not None else None
+    cmd_col, cmd_scale = _command_vx_column(env) if estimator is not None else (0, 1.0)
     falls = torch.zeros(n, dtype=torch.long)
     for k in range(steps):
         cmd = cmds_all[k]
@@ -298,16 +310,20 @@ def run_scenarios(env, policy: Policy, scenarios=QUICK, seed: int = 0, estimator
         env.commands[:] = cmd.to(dev)
         if changed:  # the policy sees a new command at once, not one step late (history as in training)
             obs = env.refresh_commands(obs)
-        if k and k % push_every == 0 and len(random_ids):
-            ids = random_ids.to(dev)
+        pushed = random_ids[k % push_every == 0] if k and len(random_ids) else random_ids[:0]
+        if len(pushed):
+            ids = pushed.to(dev)
             qvel = env.sim.qvel[ids].clone()
             qvel[:, 0:2] += (torch.rand(len(ids), 2, generator=gen).to(dev) * 2 - 1) * PUSH_VEL
             env.sim.reset(ids, env.sim.qpos[ids].clone(), qvel)
         with torch.no_grad():
             actions = policy(obs)
             if est_log is not None:  # the estimate the actor used for this step's action
-                err = estimator(obs).cpu() - env.base_lin_vel.cpu()
-                est_log[k] = err.pow(2).sum(dim=1)
+                est = estimator(obs).cpu()
+                est_log[k] = (est - env.base_lin_vel.cpu()).pow(2).sum(dim=1)
+                shifted = obs.clone()
+                shifted["policy"][:, cmd_col] += CMD_PROBE * cmd_scale
+                gain_log[k] = (estimator(shifted).cpu()[:, 0] - est[:, 0]) / CMD_PROBE
         obs = env.step(actions)[0]
         fell = (env.terminated_buf & ~env.time_out_buf).cpu()
         falls += (fell & alive[k]).long()
@@ -345,6 +361,7 @@ def run_scenarios(env, policy: Policy, scenarios=QUICK, seed: int = 0, estimator
             r.extra["vx_before_step"] = before
         if est_log is not None:
             r.extra["est_rms"] = float(est_log[k0:k1, cols].mean().sqrt())
+            r.extra["est_cmd_gain"] = float(gain_log[k0:k1, cols].mean())
         if s.kind == "slalom":
             y = pos_log[k0:k1, cols[0], 1]
             heading = wrap_to_pi(yaw_log[k0:k1, cols[0]] - yaw_log[k0, cols[0]])
@@ -365,6 +382,20 @@ def run_scenarios(env, policy: Policy, scenarios=QUICK, seed: int = 0, estimator
                 r.extra["masked_over_driven"] = float(rms[mask].mean() / rms[~mask].mean().clamp(min=1e-9))
         results.append(r)
     return results
+
+
+CMD_PROBE = 0.5
+"""m/s added to the vx command to measure `est_cmd_gain`."""
+
+
+def _command_vx_column(env) -> tuple[int, float]:
+    """The policy observation's column of the vx command and its scale."""
+    start = 0
+    for name, dim, scale in env.obs_layout["policy"]:
+        if name == "commands":
+            return start, float(scale[0] if isinstance(scale, (list, tuple)) else scale)
+        start += dim
+    raise ValueError("the policy observation has no commands term")
 
 
 def cost_of_transport(env, power: torch.Tensor, xy: torch.Tensor) -> float:

@@ -147,15 +147,19 @@ def gait_clock(env) -> dict:
     }
 
 
-def estimator_spec(actor: nn.Module | None) -> dict:
-    """{"estimator": ...} for an actor with a velocity estimator (inside the network), else {}."""
+def estimator_spec(actor: nn.Module | None, obs_columns: dict[str, tuple[int, int]] | None = None) -> dict:
+    """{"estimator": ...} for an actor with a velocity estimator (inside the network), else {}.
+    `obs_columns` (env.policy_obs_columns()) names the observation terms it does not read."""
     if actor is None or getattr(actor, "estimator", None) is None:
         return {}
+    read = set(getattr(actor.estimator, "columns", torch.zeros(0, dtype=torch.long)).tolist())
+    skipped = [t for t, (a, b) in (obs_columns or {}).items() if read and not read.intersection(range(a, b))]
+    what = "the whole policy observation" + (f" except {', '.join(skipped)}" if skipped else "")
     return {
         "estimator": {
             "output": "base_lin_vel",
             "frame": "trunk, m/s",
-            "input": "the whole policy observation, normalised; the actor's MLP reads its output, and so does "
+            "input": f"{what}, normalised; the actor's MLP reads its output, and so does "
             "the prior where it has speed_feedback",
             "note": "inside policy.pt / policy.onnx: the robot side feeds the observation as for any policy",
         }
@@ -215,7 +219,7 @@ def policy_metadata(env, task: str, actor: nn.Module | None = None) -> dict:
         "propulsion_modes": propulsion_modes(env),
         **gait_clock(env),
         **({"history": env.history_spec()} if getattr(env, "history_spec", lambda: None)() else {}),
-        **estimator_spec(actor),
+        **estimator_spec(actor, env.policy_obs_columns()),
         "files": {"onnx": "policy.onnx", "torchscript": "policy.pt"},
         "onnx": {"input": ONNX_INPUT, "output": ONNX_OUTPUT},
     }
