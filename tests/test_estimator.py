@@ -209,7 +209,8 @@ def test_the_shipped_estimator_policy_loads_everywhere_and_estimates_its_speed()
     scen = (ev.Scenario("fwd", ((0.0, (0.5, 0.0, 0.0)),), 5.0, 3.0),)
     e = spec.env_class(ev.eval_env_cfg(env_cfg, scen))
     assert e.observation_dims()["policy"] == dim == meta.obs_dim
-    (res,) = ev.run_scenarios(e, policy, scen, estimator=policy.estimate)
+    (res,) = ev.run_scenarios(e, policy, scen, estimator=policy.estimate, command_gain=True)
     e.close()
     assert abs(res.mean["vx"] - 0.5) < 0.15 and res.falls == 0  # it holds the commanded 0.5 m/s
     assert res.extra["est_rms"] < 0.2  # and knows how fast it goes
+    assert 0.02 < res.extra["est_cmd_gain"] < 0.5  # partly from the command it reads (docs/tasks.md)

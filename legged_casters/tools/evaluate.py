@@ -147,6 +147,8 @@ SIGN_CHANGE_MARGIN = 0.05
 """m/s: after the Fig. 6 step, the sign has changed once vx exceeds this (not mere jitter)."""
 MODE_SWIVEL_RATIO = 0.2
 MODE_VX_ERROR = 0.25
+CMD_PROBE = 0.5
+"""m/s added to the vx command to measure `est_cmd_gain`."""
 PUSH_VEL = 0.5
 """m/s: each push adds U(-PUSH_VEL, PUSH_VEL) to the trunk's vx and vy."""
 
@@ -272,11 +274,15 @@ def _schedule(scenarios, owner: list[int], steps: int, dt: float, ranges: dict, 
     return cmds, alive
 
 
-def run_scenarios(env, policy: Policy, scenarios=QUICK, seed: int = 0, estimator=None) -> list[ScenarioResult]:
+def run_scenarios(
+    env, policy: Policy, scenarios=QUICK, seed: int = 0, estimator=None, command_gain: bool = False
+) -> list[ScenarioResult]:
     """Run `policy` (TensorDict obs -> actions) on `env` (an evaluation env with one env
     per scenario copy) through `scenarios`; return one result per scenario. `estimator`
     (TensorDict obs -> (n, 3) trunk velocity estimate, m/s): its RMS error per scenario
-    (extra `est_rms`)."""
+    (extra `est_rms`), and with `command_gain` how far its vx moves per m/s of commanded
+    vx in its input (extra `est_cmd_gain`: the estimate again with the vx command
+    CMD_PROBE m/s higher; 0 for an estimator that does not read the command)."""
     dev = env.device
     n = env.num_envs
     owner = [i for i, s in enumerate(scenarios) for _ in range(s.copies)]
@@ -299,10 +305,9 @@ def run_scenarios(env, policy: Policy, scenarios=QUICK, seed: int = 0, estimator
     swivel_log = torch.zeros(steps, n, 4) if hasattr(env, "swivel_vel") else None
     yaw_log = torch.zeros(steps, n)
     est_log = torch.zeros(steps, n) if estimator is not None else None  # squared estimate error
-    # How much the estimate follows the command it reads: its vx with the vx command 0.5 m/s
-    # higher, minus its vx, per m/s (0 for an estimator that does not read the command).
-    gain_log = torch.zeros(steps, n) if estimator is not None else None
-    cmd_col, cmd_scale = _command_vx_column(env) if estimator is not None else (0, 1.0)
+    gain_log = torch.zeros(steps, n) if estimator is not None and command_gain else None
+    if gain_log is not None:
+        cmd_col, cmd_scale = env.policy_obs_slices()["commands"]  # the vx command's column and scale
     falls = torch.zeros(n, dtype=torch.long)
     for k in range(steps):
         cmd = cmds_all[k]
@@ -321,6 +326,7 @@ def run_scenarios(env, policy: Policy, scenarios=QUICK, seed: int = 0, estimator
             if est_log is not None:  # the estimate the actor used for this step's action
                 est = estimator(obs).cpu()
                 est_log[k] = (est - env.base_lin_vel.cpu()).pow(2).sum(dim=1)
+            if gain_log is not None:
                 shifted = obs.clone()
                 shifted["policy"][:, cmd_col] += CMD_PROBE * cmd_scale
                 gain_log[k] = (estimator(shifted).cpu()[:, 0] - est[:, 0]) / CMD_PROBE
@@ -361,6 +367,7 @@ def run_scenarios(env, policy: Policy, scenarios=QUICK, seed: int = 0, estimator
             r.extra["vx_before_step"] = before
         if est_log is not None:
             r.extra["est_rms"] = float(est_log[k0:k1, cols].mean().sqrt())
+        if gain_log is not None:
             r.extra["est_cmd_gain"] = float(gain_log[k0:k1, cols].mean())
         if s.kind == "slalom":
             y = pos_log[k0:k1, cols[0], 1]
@@ -382,20 +389,6 @@ def run_scenarios(env, policy: Policy, scenarios=QUICK, seed: int = 0, estimator
                 r.extra["masked_over_driven"] = float(rms[mask].mean() / rms[~mask].mean().clamp(min=1e-9))
         results.append(r)
     return results
-
-
-CMD_PROBE = 0.5
-"""m/s added to the vx command to measure `est_cmd_gain`."""
-
-
-def _command_vx_column(env) -> tuple[int, float]:
-    """The policy observation's column of the vx command and its scale."""
-    start = 0
-    for name, dim, scale in env.obs_layout["policy"]:
-        if name == "commands":
-            return start, float(scale[0] if isinstance(scale, (list, tuple)) else scale)
-        start += dim
-    raise ValueError("the policy observation has no commands term")
 
 
 def cost_of_transport(env, power: torch.Tensor, xy: torch.Tensor) -> float:
@@ -650,7 +643,9 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
         print(f"[{PROG}] {label}: task {task}, {len(scenarios)} scenarios on {env.num_envs} envs; {name}")
         t0 = time.time()
         try:
-            results = run_scenarios(env, policy, scenarios, estimator=getattr(policy, "estimate", None))
+            results = run_scenarios(
+                env, policy, scenarios, estimator=getattr(policy, "estimate", None), command_gain=True
+            )
         finally:
             env.close()
         print(format_table(results))

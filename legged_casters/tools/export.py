@@ -152,8 +152,8 @@ def estimator_spec(actor: nn.Module | None, obs_columns: dict[str, tuple[int, in
     `obs_columns` (env.policy_obs_columns()) names the observation terms it does not read."""
     if actor is None or getattr(actor, "estimator", None) is None:
         return {}
-    read = set(getattr(actor.estimator, "columns", torch.zeros(0, dtype=torch.long)).tolist())
-    skipped = [t for t, (a, b) in (obs_columns or {}).items() if read and not read.intersection(range(a, b))]
+    read = set(actor.estimator.columns.tolist())
+    skipped = [t for t, (a, b) in (obs_columns or {}).items() if not read.intersection(range(a, b))]
     what = "the whole policy observation" + (f" except {', '.join(skipped)}" if skipped else "")
     return {
         "estimator": {
