@@ -27,7 +27,9 @@ Success: no fault, upright at the end (tilt under 10 deg, trunk above 0.25 m) an
 least 1.5 m travelled.
 
 **Loopback** (``--loopback N``): the real chain, each part its own process over zenoh on
-this machine: ``sim_robot --startup damping`` (it collapses from its keyframe for 3 s),
+this machine: ``sim_robot --startup damping`` (it collapses from its keyframe for 3 s;
+with ``--robot go2``: ``fake_go2 --startup damping`` behind the Go2's DDS topics on
+loopback and ``go2_adapter`` between them and zenoh, which needs ``./setup.sh unitree``),
 then the bridge (``--policy``, ``--standup``; ``--max-state-age-ms 100``, so that a busy
 machine cannot end the run on a late state), then an operator at 20 Hz: vx 0 until
 the bridge runs and 1 s more, then vx 0.5 for 10 s. Measured from the simulator's truth
@@ -235,7 +237,15 @@ def loopback(args, i: int) -> dict | None:
     ]
     op_pub, op = session.declare_publisher(keys["operator"]), P.Sender()
     common = ["--connect", endpoint, "--namespace", ns, "--summary-every", "0"]
-    procs = [subprocess.Popen(module_cmd("sim_robot", "--startup", "damping", *common), stdout=subprocess.DEVNULL)]
+    if args.robot == "sim":
+        robot = [module_cmd("sim_robot", "--startup", "damping", *common)]
+    else:  # the Go2's DDS interface: the fake Go2 behind rt/lowstate and rt/lowcmd, the adapter to zenoh
+        dds = ["--domain-id", str(100 + (os.getpid() + i) % 100)]
+        robot = [
+            module_cmd("fake_go2", "--startup", "damping", *dds, *common),
+            module_cmd("go2_adapter", *dds, *common),
+        ]
+    procs = [subprocess.Popen(cmd, stdout=subprocess.DEVNULL) for cmd in robot]
 
     def operate(vx: float, seconds: float, until=None) -> None:
         end = time.monotonic() + seconds
@@ -306,6 +316,12 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--trials", type=int, default=100, help="lying starts")
     ap.add_argument("--falls", type=int, default=10, help="push-induced falls to recover from")
     ap.add_argument("--loopback", type=int, default=0, help="runs of the process chain over zenoh (sim_robot, bridge)")
+    ap.add_argument(
+        "--robot",
+        choices=("sim", "go2"),
+        default="sim",
+        help="loopback robot side: sim_robot, or fake_go2 + go2_adapter over DDS (./setup.sh unitree)",
+    )
     ap.add_argument("--standup", choices=("fold", "linear"), default="fold")
     ap.add_argument("--seconds", type=float, default=4.0, help="time a lying start has to stand (s)")
     ap.add_argument("--seed", type=int, default=0)
@@ -320,6 +336,13 @@ def main(argv: list[str] | None = None) -> int:
     meta = load_meta(args.policy)
     if meta.robot != "caster":
         ap.error(f"--policy {args.policy} drives the {meta.robot!r} robot; this check is for the caster robot")
+    if args.loopback and args.robot == "go2":
+        from legged_casters.deploy import unitree
+
+        try:
+            unitree.load_sdk()
+        except unitree.SdkUnavailable as err:
+            ap.error(f"--robot go2 needs the Unitree SDK: {err}")
     runner = PolicyRunner(meta, "onnx")
     t0 = time.time()
     if args.trials:
@@ -347,7 +370,10 @@ def main(argv: list[str] | None = None) -> int:
         )), flush=True)  # fmt: skip
     if args.loopback:
         good = [r for r in runs if r is not None and r["fault"] == "NONE" and r["state"] == "RUNNING"]
-        print(f"[standup_check] loopback: {len(good)}/{args.loopback} stood up from lying and skated", flush=True)
+        print(
+            f"[standup_check] loopback ({args.robot}): {len(good)}/{args.loopback} stood up from lying and skated",
+            flush=True,
+        )
     print(f"[standup_check] {time.time() - t0:.0f} s")
     return 0
 

@@ -244,6 +244,28 @@ def test_an_actor_whose_prior_needs_the_speed_has_an_estimator():
     e.close()
 
 
+def test_the_downhill_hold_starts_on_the_evaluation_hill():
+    """evaluate's downhill scenario starts its robot on the 3 deg descent, the others at the
+    origin: with the joints held at the nominal pose the downhill robot rolls away, the
+    flat one stays, and the downhill check fails for it. A flat env refuses the scenario."""
+    spec = registry.get_task(TASK)
+    hill = next(s for s in evaluate.SPEED if s.kind == "hill")
+    scen = (evaluate.Scenario("flat", ((0.0, (0.5, 0.0, 0.0)),), 3.0, 1.0),
+            evaluate.Scenario(hill.name, hill.segments, 3.0, 1.0, kind="hill", start_x=hill.start_x))  # fmt: skip
+    e = spec.env_class(evaluate.eval_env_cfg(spec.env_cfg, scen))
+    res = {r.name: r for r in evaluate.run_scenarios(e, lambda obs: torch.zeros(e.num_envs, 12), scen)}
+    height = e.base_height.tolist()  # above the ground under each trunk: the hill's, the floor's
+    assert float(e.base_pos[1, 0]) > hill.start_x and height[1] == pytest.approx(height[0], abs=0.02)
+    e.close()
+    assert abs(res["flat"].mean["vx"]) < 0.05 and res[hill.name].mean["vx"] > 0.3
+    checks = {name: ok for name, ok, _ in evaluate.verdict(list(res.values()))}
+    assert checks == {f"{hill.name}: |vx error| <= {evaluate.DOWNHILL_VX_ERROR}": False}
+    flat = spec.env_class(evaluate.eval_env_cfg(spec.env_cfg, scen[:1]))
+    with pytest.raises(ValueError, match="hill"):
+        evaluate.run_scenarios(flat, lambda obs: torch.zeros(1, 12), scen[1:])
+    flat.close()
+
+
 def test_evaluation_of_a_standing_policy_reports_the_command_as_error():
     spec = registry.get_task("caster_omni_paper")
     scen = evaluate.QUICK[:3] + (evaluate.FULL[9],)  # vx +0.5, vx -0.5, vx +1.0, fig6 step

@@ -70,6 +70,10 @@ class LeggedEnv(VecEnv):
         if cfg.terrain.segments:
             terrain.add_course(spec, cfg.terrain.segments, cfg.terrain.start_x, cfg.terrain.width)
             self.course = terrain.Course(cfg.terrain.segments, cfg.terrain.start_x)
+        self.spawn_x: torch.Tensor | None = None
+        """Where each robot starts along x at its reset (num_envs,), NaN: the origin (or the
+        course draw); None: every robot as configured. Set by the evaluation to start a
+        scenario on its hill; the trunk is lifted onto the ground there."""
         self.model = physics_model(spec)
         if cfg.sim.timestep is not None:
             set_timestep(self.model, cfg.sim.timestep)
@@ -416,6 +420,9 @@ class LeggedEnv(VecEnv):
         if self.course is not None and t.spawn_on_course:
             qpos[:, 0] = _uniform(0.0, self.course.end + 2.0, (n,), self.device)
             qpos[:, 1] = _uniform(-(t.width / 2 - 1.0), t.width / 2 - 1.0, (n,), self.device)
+        if self.spawn_x is not None:
+            x = self.spawn_x.to(qpos)[env_ids]
+            qpos[:, 0] = torch.where(torch.isnan(x), qpos[:, 0], x)
         self._lift_to_floor(qpos)
         qvel = torch.zeros(n, self.model.nv, device=self.device)
         qvel[:, 0:6] = _uniform(-init.base_vel_noise, init.base_vel_noise, (n, 6), self.device)

@@ -48,6 +48,8 @@ class Scenario:
     kind: str = "track"
     push_interval: float = 8.0
     """Seconds between pushes of a random-commands scenario (PUSH_VEL each)."""
+    start_x: float | None = None
+    """Start at this x on the evaluation hill (HILL_SEGMENTS) instead of the origin."""
 
     def command(self, t: float) -> tuple[float, float, float]:
         cmd = self.segments[0][1]
@@ -97,6 +99,13 @@ SLALOM_PERIOD_S = 2.25
 """The vy slalom: vx 0.8 m/s, vy +0.4 / -0.4 m/s alternating every this many seconds."""
 RAMP_TARGET, RAMP_S = -4.0, 6.0
 """The Fig. 9 ramp: vx from 0 to RAMP_TARGET m/s over RAMP_S seconds, then held."""
+HILL_DEG = 3.0
+HILL_START_X = 100.0
+HILL_SEGMENTS = ((30.0, HILL_DEG), (2.0, 0.0), (30.0, -HILL_DEG))
+"""The evaluation hill (terrain.segments from HILL_START_X along +x): 30 m up at 3 deg, 2 m
+flat, 30 m down; far enough from the origin that no flat-ground scenario reaches it."""
+DOWNHILL_X = HILL_START_X + 30.0 * math.cos(math.radians(HILL_DEG)) + 2.0 + 1.0
+"""The downhill hold starts 1 m into the descent, facing down it (+x)."""
 
 
 def _speed(name: str, cmd, long: bool) -> Scenario:
@@ -123,13 +132,16 @@ SPEED = tuple(
         tuple((k * 0.25, (RAMP_TARGET * min(k * 0.25 / RAMP_S, 1.0), 0.0, 0.0)) for k in range(int(RAMP_S / 0.25) + 1)),
         RAMP_S + 4.0, 0.0, kind="ramp",
     ),
+    _const("downhill 3deg", (0.5, 0.0, 0.0), duration=10.0, measure_from=4.0, kind="hill", start_x=DOWNHILL_X),
 )  # fmt: skip
 """The speed sweep of issue 20: vx from 0.25 m/s to the top speed both ways, vy, the vy
-slalom and the Fig. 9 backward ramp (the slalom starts with 2 s of vx 0.8 alone)."""
+slalom, the Fig. 9 backward ramp (the slalom starts with 2 s of vx 0.8 alone) and the
+downhill hold (vx 0.5 down the evaluation hill's 3 deg descent, from a stand on it)."""
 SPEED_BARS = {"vx": ((1.5, 0.15), (2.0, 0.3)), "vy": ((0.4, 0.1),)}
 """Issue 20's speed-sweep bars: axis -> ((up to this |command|, max mean |error|), ...)."""
 SLALOM_SWING, SLALOM_HEADING_DEG = (0.3, 0.6), 30.0
 RAMP_BEST_2S = 2.0
+DOWNHILL_VX_ERROR = 0.2
 ESTIMATOR_RMS = 0.1
 
 SCENARIO_SETS = {"full": FULL, "quick": QUICK, "speed": SPEED, "all": FULL + SPEED}
@@ -197,6 +209,8 @@ def eval_env_cfg(env_cfg, scenarios, backend: str = "cpu", condition: dict | Non
     longest = max(s.duration for s in scenarios)
     fields = {**EVAL_SETTINGS, "num_envs": n, "episode_length_s": longest + 1.0, "sim.backend": backend}
     fields["sim.device"] = "cpu" if backend == "cpu" else env_cfg.sim.device
+    if any(s.start_x is not None for s in scenarios):
+        fields.update({"terrain.segments": [list(seg) for seg in HILL_SEGMENTS], "terrain.start_x": HILL_START_X})
     fields.update(condition or {})
     return common.with_overrides(env_cfg, fields, "evaluation env")
 
@@ -294,6 +308,10 @@ def run_scenarios(
         for i, s in enumerate(scenarios):
             env.set_mode(s.mode, (owner_t == i).nonzero().flatten())
     env.set_commands(torch.zeros(n, 3))
+    if any(s.start_x is not None for s in scenarios):
+        if env.course is None:
+            raise ValueError("a scenario starts on the evaluation hill: build the env by eval_env_cfg(cfg, scenarios)")
+        env.spawn_x = torch.tensor([math.nan if scenarios[i].start_x is None else scenarios[i].start_x for i in owner])
     obs = env.reset()
     steps = int(round(max(s.duration for s in scenarios) / env.dt))
     cmds_all, alive = _schedule(scenarios, owner, steps, env.dt, env.command_ranges, gen)
@@ -454,6 +472,10 @@ def verdict(results: list[ScenarioResult], task: str | None = None) -> list[tupl
         best = by["fig9 ramp"].extra["best_2s_backward"]
         checks.append((f"fig9 ramp: best 2-s backward speed >= {RAMP_BEST_2S} m/s", best >= RAMP_BEST_2S,
                        f"{best:.2f} m/s"))  # fmt: skip
+    if "downhill 3deg" in by:
+        r = by["downhill 3deg"]
+        ok = r.err["vx"] <= DOWNHILL_VX_ERROR and not r.falls
+        checks.append((f"downhill 3deg: |vx error| <= {DOWNHILL_VX_ERROR}", ok, f"{r.err['vx']:.3f}"))
     est = [r.extra["est_rms"] for r in results if r.kind == "track" and "est_rms" in r.extra]
     if est:
         worst = max(est)
