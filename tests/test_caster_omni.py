@@ -225,6 +225,39 @@ def test_sim2sim_conditions_keep_the_control_period():
     assert "| latency | 0/1 | 1 | +0.200 (vx +0.5 vx) | -0.100 (vx +0.5 wz) |" in table
 
 
+def test_an_imu_bias_is_constant_per_episode_and_only_on_its_terms():
+    """noise.bias (evaluate.py --imu-bias): each env's offset is drawn at reset within the
+    bounds, only on the named terms (scaled as the term), the same on every step of the
+    episode and redrawn at the next; an unknown term is refused; evaluation has none."""
+    from legged_casters.tools import evaluate as E
+
+    spec = registry.get_task("caster_omni")
+    cfg, _ = registry.task_configs("caster_omni")
+    env = spec.env_class(E.eval_env_cfg(cfg, E.QUICK[:2], condition=E.condition_overrides(cfg, imu_bias=True)))
+    try:
+        cols = env.policy_obs_columns()
+        scale = dict((t, sc) for t, _, sc in env.obs_layout["policy"])
+        first = env.obs_bias.clone()
+        for term, (a, b) in cols.items():
+            bound = E.IMU_BIAS.get(term, 0.0) * scale[term]
+            assert (first[:, a:b].abs() <= bound + 1e-7).all(), term
+            assert (first[:, a:b] != 0).any() == (bound > 0), term
+        env.set_commands(torch.zeros(env.num_envs, 3))
+        g0, g1 = cols["projected_gravity"]
+        for _ in range(2):
+            obs = env.step(torch.zeros(env.num_envs, 12))[0]["policy"]
+            assert torch.equal(env.obs_bias, first)
+            seen = obs[:, g0:g1] - env.projected_gravity * scale["projected_gravity"]
+            assert (seen - first[:, g0:g1]).abs().max() < 1e-5
+        env.reset()
+        assert not torch.equal(env.obs_bias, first)
+    finally:
+        env.close()
+    with pytest.raises(ValueError, match="noise.bias"):
+        registry.make_env("caster_omni", ["sim.backend=cpu", "noise.bias={heading: 0.1}"], num_envs=1)
+    assert E.eval_env_cfg(cfg, E.QUICK[:1]).noise.bias == {}
+
+
 def test_the_training_evaluation_pushes_robots_at_each_scenarios_interval():
     """The quick evaluation (train.py's model_best choice) has a pushed-robots scenario;
     pushes come at each random scenario's own interval and only its falls are counted."""

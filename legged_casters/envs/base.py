@@ -189,6 +189,18 @@ class LeggedEnv(VecEnv):
             amp = self.cfg.noise.scales.get(term, 0.0) * scale * self.cfg.noise.level
             noise.append(torch.full((dim,), amp if self.cfg.noise.enabled else 0.0))
         self.noise_vec = torch.cat(noise).to(self.device) if noise else torch.zeros(0, device=self.device)
+        unknown = set(self.cfg.noise.bias) - {term for term, _, _ in self.obs_layout["policy"]}
+        if unknown:
+            raise ValueError(f"noise.bias names terms the policy does not observe: {sorted(unknown)}")
+        bias = [
+            torch.full((dim,), self.cfg.noise.bias.get(term, 0.0) * scale)
+            for term, dim, scale in self.obs_layout["policy"]
+        ]
+        self.bias_vec = torch.cat(bias).to(self.device) if bias else torch.zeros(0, device=self.device)
+        self.obs_bias = torch.zeros(self.num_envs, len(self.bias_vec), device=self.device)
+        """Each env's constant observation offset this episode (noise.bias, scaled)."""
+        if self.cfg.noise.bias:  # the first episodes' draw (their reset came before the layout)
+            self.obs_bias[:] = _uniform(-1.0, 1.0, tuple(self.obs_bias.shape), self.device) * self.bias_vec
         self.obs_buf = self.compute_observations()
         self._after_observations()
 
@@ -525,6 +537,8 @@ class LeggedEnv(VecEnv):
 
     def randomize(self, env_ids: torch.Tensor) -> None:
         dr, m, dev, n = self.cfg.domain_rand, self.model, self.device, len(env_ids)
+        if self.cfg.noise.bias and hasattr(self, "obs_bias"):
+            self.obs_bias[env_ids] = _uniform(-1.0, 1.0, (n, len(self.bias_vec)), dev) * self.bias_vec
         if self._latency_on:
             steps = torch.round(_uniform(*dr.action_latency_range, (n,), dev) / self.sim.physics_dt).long()
             self.latency_steps[env_ids] = steps.clamp(0, self.sim.decimation)
@@ -576,6 +590,8 @@ class LeggedEnv(VecEnv):
             obs = torch.cat(parts, dim=1) if parts else torch.zeros(self.num_envs, 0, device=self.device)
             if group == "policy" and self.noise_vec.numel():
                 obs = obs + (2 * torch.rand_like(obs) - 1) * self.noise_vec
+            if group == "policy" and self.cfg.noise.bias:
+                obs = obs + self.obs_bias
             groups[group] = torch.nan_to_num(obs, nan=0.0, posinf=clip, neginf=-clip).clamp(-clip, clip)
         return TensorDict(groups, batch_size=[self.num_envs], device=self.device)
 

@@ -78,6 +78,12 @@ class NoiseCfg:
         default_factory=lambda: {"ang_vel": 0.2, "projected_gravity": 0.05, "joint_pos": 0.01, "joint_vel": 1.5}
     )
     """Uniform noise amplitude per policy observation term, in the term's own units."""
+    bias: dict[str, float] = field(default_factory=dict)
+    """Constant offset per policy observation term, in the term's own units, drawn per env
+    and per value uniformly in +-value at every reset and added to every observation of
+    that episode (an IMU's gyro bias: `ang_vel`; a tilted IMU mount: `projected_gravity`,
+    not renormalised). Independent of `enabled` and `level`; empty: none. The history
+    records it as the policy observed it."""
 
 
 @dataclass

@@ -167,6 +167,7 @@ PUSH_VEL = 0.5
 
 EVAL_SETTINGS = {
     "noise.enabled": False,
+    "noise.bias": {},
     "domain_rand.push_robots": False,
     "domain_rand.randomize_friction": False,
     "domain_rand.randomize_base_mass": False,
@@ -215,10 +216,18 @@ def eval_env_cfg(env_cfg, scenarios, backend: str = "cpu", condition: dict | Non
     return common.with_overrides(env_cfg, fields, "evaluation env")
 
 
-def condition_overrides(env_cfg, physics_dt: float | None = None, latency_ms: float = 0.0, noise: bool = False):
+IMU_BIAS = {"ang_vel": 0.05, "projected_gravity": 0.035}
+"""The IMU bias of evaluate.py --imu-bias (noise.bias): up to +-0.05 rad/s on each gyro axis
+and +-0.035 on each projected-gravity component (a mount tilted up to 2 deg), drawn per
+scenario robot."""
+
+
+def condition_overrides(
+    env_cfg, physics_dt: float | None = None, latency_ms: float = 0.0, noise: bool = False, imu_bias: bool = False
+):
     """Env overrides that evaluate a policy off its training conditions, same control period:
     another physics step (the decimation follows), a fixed action latency, the training's
-    observation noise."""
+    observation noise, an IMU bias (IMU_BIAS)."""
     out: dict = {}
     control_dt = env_cfg.sim.timestep * env_cfg.sim.decimation if env_cfg.sim.timestep else None
     if physics_dt is not None:
@@ -237,6 +246,8 @@ def condition_overrides(env_cfg, physics_dt: float | None = None, latency_ms: fl
         out["domain_rand.action_latency_range"] = (latency_ms / 1e3, latency_ms / 1e3)
     if noise:
         out["noise.enabled"] = True
+    if imu_bias:
+        out["noise.bias"] = dict(IMU_BIAS)
     return out
 
 
@@ -246,6 +257,7 @@ SIM2SIM = (
     ("10 ms action latency", {"latency_ms": 10.0}),
     ("20 ms action latency", {"latency_ms": 20.0}),
     ("observation noise on", {"noise": True}),
+    ("IMU bias", {"imu_bias": True}),
     ("2 ms + 20 ms latency + noise", {"physics_dt": 0.002, "latency_ms": 20.0, "noise": True}),
 )
 """The rows of evaluate.py --sim2sim: the training conditions first, then one change each."""
@@ -577,10 +589,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--physics-dt", type=float, help="physics step (s), same control period (default: the task's)")
     p.add_argument("--action-latency-ms", type=float, default=0.0, help="action latency (ms, whole physics steps)")
     p.add_argument("--noise", action="store_true", help="with the training's observation noise")
+    p.add_argument("--imu-bias", action="store_true", help="with a constant IMU bias per robot (IMU_BIAS)")
     p.add_argument(
         "--sim2sim",
         action="store_true",
-        help="the checks under each condition of SIM2SIM (5 ms, 2 ms, latency, noise) and their change from 5 ms",
+        help="the checks under each condition of SIM2SIM (5 ms, 2 ms, latency, noise, IMU bias) and their change "
+        "from 5 ms",
     )
     return p
 
@@ -647,11 +661,13 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
             label = f"{sel.ckpt_path}" + (" (stochastic)" if stochastic else "")
     scenarios = applicable(SCENARIO_SETS[args.scenarios], spec.env_class, env_cfg)
     if args.sim2sim:
-        if args.physics_dt or args.action_latency_ms or args.noise:
-            raise UsageError("--sim2sim runs its own conditions: leave out --physics-dt, --action-latency-ms, --noise")
+        if args.physics_dt or args.action_latency_ms or args.noise or args.imu_bias:
+            raise UsageError(
+                "--sim2sim runs its own conditions: leave out --physics-dt, --action-latency-ms, --noise, --imu-bias"
+            )
         conditions = [(name, condition_overrides(env_cfg, **kw)) for name, kw in SIM2SIM]
     else:
-        cond = condition_overrides(env_cfg, args.physics_dt, args.action_latency_ms, args.noise)
+        cond = condition_overrides(env_cfg, args.physics_dt, args.action_latency_ms, args.noise, args.imu_bias)
         conditions = [(", ".join(f"{k}={v}" for k, v in cond.items()) or "training conditions", cond)]
     rows = []
     for name, cond in conditions:
