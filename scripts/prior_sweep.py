@@ -2,6 +2,7 @@
 
     python scripts/prior_sweep.py                              # k = 0 and k = 1 (c = 0.3); ~1 min on 2 cores
     python scripts/prior_sweep.py --feedback 0 1 2 --command-share 0.2
+    python scripts/prior_sweep.py --feedback 0 --set gait.tilt=0.1 --set 'gait.amplitude_law=[[0, 0], [1, 0.09]]'
 
 Every robot's joint targets are caster_omni's prior alone (what the actor adds its
 residual to), in the evaluation setting (no noise, pushes or randomisation), through
@@ -28,15 +29,17 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--feedback", type=float, nargs="+", default=[0.0, 1.0], help="gait.speed_feedback values")
     ap.add_argument("--command-share", type=float, default=0.3, help="gait.command_share with feedback")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="caster_omni config override")
     args = ap.parse_args(argv)
     if any(k < 0 for k in args.feedback) or args.command_share < 0:
         ap.error("--feedback and --command-share must be >= 0")
     torch.set_num_threads(1)
     spec = registry.get_task("caster_omni")
+    env_cfg, _ = registry.task_configs("caster_omni", args.set)
     scen = tuple(s for s in evaluate.SPEED if s.kind == "track")
     rows: dict[str, list[str]] = {s.name: [] for s in scen}
     for k in args.feedback:
-        cfg = copy.deepcopy(spec.env_cfg)
+        cfg = copy.deepcopy(env_cfg)
         cfg.gait.speed_feedback, cfg.gait.command_share = k, (args.command_share if k > 0 else 1.0)
         env = spec.env_class(evaluate.eval_env_cfg(cfg, scen))
         try:

@@ -23,6 +23,40 @@ CPU = ["sim.backend=cpu"]
 CFG = GaitPriorCfg(enabled=True, frequency=2.0, amplitude=0.2, tilt=0.2, thigh_share=0.0, full_speed=0.5)
 
 
+LAW, LAW_BACK = [[0.0, 0.0], [1.0, 0.1], [2.0, 0.2]], [[0.0, 0.0], [1.0, 0.3]]
+FORWARD_LAW = [
+    [0.0, 0.0],
+    [0.011, 0.05],
+    [0.056, 0.06],
+    [0.179, 0.07],
+    [0.725, 0.08],
+    [1.005, 0.09],
+    [1.174, 0.1],
+    [1.426, 0.12],
+    [1.524, 0.13],
+    [1.698, 0.15],
+    [1.92, 0.18],
+    [2.05, 0.2],
+    [2.183, 0.22],
+    [2.437, 0.25],
+]
+BACKWARD_LAW = [
+    [0.0, 0.0],
+    [0.036, 0.14],
+    [0.57, 0.15],
+    [0.835, 0.16],
+    [0.945, 0.17],
+    [0.998, 0.18],
+    [1.085, 0.19],
+    [1.154, 0.22],
+    [1.233, 0.24],
+    [1.289, 0.26],
+    [1.374, 0.3],
+    [1.559, 0.35],
+]
+"""What `python scripts/prior_law.py` measured for caster_omni's prior (forward at tilt 0.1, backward at 0.25)."""
+
+
 def _prior(cmd, mask=(0, 0, 0, 0), sin_phase=1.0, cfg=CFG):
     out = gait_prior(cfg, torch.tensor([cmd]), torch.tensor([mask], dtype=torch.float32), torch.tensor([sin_phase]))
     return out.view(4, 3)  # legs x (hip, thigh, calf)
@@ -54,6 +88,49 @@ def test_prior_oscillates_only_the_driving_casters_and_splays_across_the_motion(
     assert masked[2:].abs().max() < 1e-6 and masked[:2, 0].abs().min() > 0.19
     side = _prior((0, 0.5, 0)) - _prior((0, 0.5, 0), sin_phase=0.0)
     assert side[:, 1].tolist() == pytest.approx([-0.2, -0.2, 0.2, 0.2])  # thighs: front/rear antiphase
+
+
+def test_a_speed_law_sets_the_amplitude_of_the_forward_or_backward_push():
+    """amplitude_law (forward) and amplitude_law_backward: the hip splay of a vx push is read
+    from the table (interpolated, flat beyond it), tilt_backward tilts a backward push; the
+    sideways part keeps amplitude x ramp, and a foot with both takes the larger."""
+    cfg = GaitPriorCfg(enabled=True, amplitude=0.2, tilt=0.1, tilt_backward=0.25, thigh_share=0.0, full_speed=0.25,
+                       amplitude_law=LAW, amplitude_law_backward=LAW_BACK)  # fmt: skip
+
+    def wave(cmd):
+        return _prior(cmd, cfg=cfg) - _prior(cmd, sin_phase=0.0, cfg=cfg)
+
+    for vx, amp in ((0.5, 0.05), (1.5, 0.15), (3.0, 0.2), (-0.5, 0.15), (-2.0, 0.3)):
+        assert wave((vx, 0, 0))[:, 0].tolist() == pytest.approx([amp, -amp, amp, -amp]), vx
+        assert wave((vx, 0, 0))[:, 1:].abs().max() < 1e-6
+    assert _prior((0.5, 0, 0), sin_phase=0.0, cfg=cfg)[:, 2].tolist() == pytest.approx([0.1] * 4)
+    assert _prior((-0.5, 0, 0), sin_phase=0.0, cfg=cfg)[:, 2].tolist() == pytest.approx([-0.25] * 4)
+    assert wave((0, 0.5, 0))[:, 1].tolist() == pytest.approx([-0.2, -0.2, 0.2, 0.2])  # no vx push: as before
+    ux = 0.5 / np.hypot(0.5, 0.05)
+    assert wave((0.5, 0.05, 0))[:, 0].abs().tolist() == pytest.approx([0.05 * ux] * 4)  # the law is larger
+    assert wave((0.2, 0.1, 0))[:, 0].abs().tolist() == pytest.approx([0.08 * 0.2 / np.hypot(0.2, 0.1)] * 4)
+    assert torch.equal(_prior((0.0, 0.0, 0.0), cfg=cfg), torch.zeros(4, 3))
+    for bad in ([[0.0, 0.0]], [[1.0, 0.1], [0.5, 0.2]], [[0.0, -0.1], [1.0, 0.1]], [[0.0, 0.0, 1.0], [1.0, 0.1]]):
+        with pytest.raises(ValueError, match="amplitude_law"):
+            GaitPriorCfg(amplitude_law=bad)
+    with pytest.raises(ValueError, match="needs gait.amplitude_law"):
+        GaitPriorCfg(amplitude_law_backward=LAW_BACK)
+
+
+def test_with_a_measured_speed_law_the_prior_alone_follows_the_command():
+    """scripts/prior_law.py's law (docs/tasks.md): open loop, no policy, the prior skates
+    faster for a faster command (the prior without it pushes alike for every command)."""
+    spec = registry.get_task(TASK)
+    scen = tuple(evaluate.Scenario(f"vx{v}", ((0.0, (v, 0, 0)),), 6.0, 3.0) for v in (0.5, 1.5, -1.0))
+    cfg = copy.deepcopy(spec.env_cfg)
+    cfg.gait = dataclasses.replace(cfg.gait, speed_feedback=0.0, tilt=0.1, tilt_backward=0.25, lateral_gain=2.0,
+                                   amplitude_law=FORWARD_LAW, amplitude_law_backward=BACKWARD_LAW)  # fmt: skip
+    e = spec.env_class(evaluate.eval_env_cfg(cfg, scen))
+    res = evaluate.run_scenarios(e, lambda obs: e.gait_offsets() / e.cfg.control.action_scale, scen)
+    e.close()
+    v = [r.mean["vx"] for r in res]
+    assert 0.2 < v[0] < 0.8 and v[1] > v[0] + 0.6 and -1.3 < v[2] < -0.7, v
+    assert not any(r.falls for r in res)
 
 
 def test_uphill_term_raises_the_oscillation_only_when_climbing():
@@ -124,10 +201,13 @@ def test_clock_phase_advances_with_policy_steps_and_restarts_with_the_episode(en
     assert env.compute_observations()["policy"][1, sl].tolist() == pytest.approx([0.0, 1.0])
 
 
-@pytest.mark.parametrize("uphill", [False, True])
-def test_the_actor_computes_the_same_prior_from_its_observation(env, uphill):
+@pytest.mark.parametrize("variant", ["plain", "uphill", "law"])
+def test_the_actor_computes_the_same_prior_from_its_observation(env, variant):
     # The actor reads the (noisy) observation, the env its own state: compare without noise.
-    env.cfg.gait.uphill_gain, env.cfg.gait.uphill_deadband = (8.0, 0.0) if uphill else (0.0, 0.06)
+    env.cfg.gait.uphill_gain, env.cfg.gait.uphill_deadband = (8.0, 0.0) if variant == "uphill" else (0.0, 0.06)
+    if variant == "law":
+        env.cfg.gait.amplitude_law, env.cfg.gait.amplitude_law_backward = LAW, LAW_BACK
+        env.cfg.gait.tilt_backward = 0.25
     noise = env.noise_vec.clone()
     env.noise_vec.zero_()
     try:
@@ -144,6 +224,7 @@ def test_the_actor_computes_the_same_prior_from_its_observation(env, uphill):
         assert torch.jit.script(prior)(obs["policy"], velocity).sub(expect).abs().max() < 1e-5
     finally:
         env.cfg.gait.uphill_gain, env.cfg.gait.uphill_deadband = 0.0, 0.06
+        env.cfg.gait.amplitude_law, env.cfg.gait.amplitude_law_backward, env.cfg.gait.tilt_backward = [], [], None
         env.noise_vec.copy_(noise)
 
 

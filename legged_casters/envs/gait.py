@@ -22,6 +22,11 @@ deployed policy can compute it from what it observes:
   the robot accelerates to one speed whatever it is told; with it the push follows
   the speed error, reverses to brake when the robot is too fast, and fades as the
   robot reaches the command.
+* A speed law (`amplitude_law`, off by default): the oscillation amplitude for the
+  trunk's forward or backward push is read from a measured table of open-loop speed
+  against amplitude (scripts/prior_law.py) instead of growing to its full value at
+  `full_speed`, so that the prior alone skates at about the commanded speed; the
+  sideways and turning part of each foot's push keeps `amplitude` x ramp.
 * Uphill effort (`uphill_gain`, off by default): the oscillation amplitude grows with
   the grade the trunk stands on along the commanded direction, read from the
   projected gravity (an IMU quantity the actor observes), because the push a caster
@@ -79,6 +84,37 @@ class GaitPriorCfg:
     command_share: float = field(default=1.0, metadata={"min": 0.0})
     """Share of the commanded planar velocity in the push velocity (the feedforward);
     only used with speed_feedback > 0."""
+    amplitude_law: list[list[float]] = field(default_factory=list)
+    """[[speed m/s, amplitude rad], ...], speeds ascending: the oscillation amplitude for a
+    forward push of the trunk at that speed (|vx| of the push velocity), interpolated
+    linearly and flat beyond the last point. A foot oscillates with the larger of this and
+    `amplitude` x ramp of its push without the trunk's vx (the sideways and turning part).
+    Empty (the default): `amplitude` x ramp of the whole push, as before."""
+    amplitude_law_backward: list[list[float]] = field(default_factory=list)
+    """The same for a backward push (vx < 0); empty: amplitude_law."""
+    tilt_backward: float | None = field(default=None, metadata={"min": 0.0})
+    """Tilt for a foot whose push points backwards; None: `tilt`."""
+
+    def __post_init__(self):
+        for name in ("amplitude_law", "amplitude_law_backward"):
+            law = getattr(self, name)
+            if not law:
+                continue
+            if any(len(p) != 2 for p in law) or len(law) < 2:
+                raise ValueError(f"gait.{name}: give at least two [speed, amplitude] points, got {law}")
+            speeds = [p[0] for p in law]
+            if any(b <= a for a, b in zip(speeds, speeds[1:], strict=False)) or speeds[0] < 0:
+                raise ValueError(f"gait.{name}: speeds must be >= 0 and ascending, got {speeds}")
+            if any(p[1] < 0 for p in law):
+                raise ValueError(f"gait.{name}: amplitudes must be >= 0, got {law}")
+        if self.amplitude_law_backward and not self.amplitude_law:
+            raise ValueError("gait.amplitude_law_backward needs gait.amplitude_law")
+
+    def law_tensors(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(forward, backward) amplitude laws as (k, 2) tensors; (0, 2) without a law."""
+        fwd = torch.tensor(self.amplitude_law, dtype=torch.float32).reshape(-1, 2)
+        back = torch.tensor(self.amplitude_law_backward or self.amplitude_law, dtype=torch.float32).reshape(-1, 2)
+        return fwd, back
 
 
 FOOT_XY = torch.tensor(
@@ -91,6 +127,13 @@ FOOT_XY = torch.tensor(
 
 _SIDE = torch.tensor([go2.leg_signs(leg)[1] for leg in go2.LEGS])  # left +1
 _FRONT = torch.tensor([go2.leg_signs(leg)[0] for leg in go2.LEGS])  # front +1
+
+
+def _law(x: torch.Tensor, law: torch.Tensor) -> torch.Tensor:
+    """Piecewise-linear table `law` (k, 2: speed, amplitude; k >= 2) at x, flat beyond its ends."""
+    xs, ys = law[:, 0], law[:, 1]
+    seg = ((x.unsqueeze(-1) - xs[:-1]) / (xs[1:] - xs[:-1]).clamp(min=1e-9)).clamp(0.0, 1.0)
+    return ys[0] + (seg * (ys[1:] - ys[:-1])).sum(-1)
 
 
 def _prior(
@@ -112,6 +155,9 @@ def _prior(
     velocity: torch.Tensor,
     speed_feedback: float,
     command_share: float,
+    law_fwd: torch.Tensor,
+    law_back: torch.Tensor,
+    tilt_backward: float,
 ) -> torch.Tensor:
     # The planar velocity to push for: the command, or with speed feedback its share plus
     # k times the error of the velocity estimate (n, 2); velocity is unused without it.
@@ -124,16 +170,27 @@ def _prior(
     speed = torch.sqrt(vx * vx + vy * vy + 1e-12)
     ramp = (speed / full_speed).clamp(max=1.0)
     ux, uy = vx / speed.clamp(min=1e-6), vy / speed.clamp(min=1e-6)
-    tilt_x = tilt * ramp * ux
+    tilt_x = (tilt + (tilt_backward - tilt) * (ux < 0.0).to(ux.dtype)) * ramp * ux
     tilt_y = tilt * lateral_gain * ramp * uy
-    amp = torch.zeros_like(sin_phase) + amplitude  # a float, or one per env (scripts/top_speed.py)
+    base_amp = torch.zeros_like(sin_phase) + amplitude  # a float, or one per env (scripts/top_speed.py)
+    amp = base_amp
     if uphill_gain > 0.0:
         # the trunk's uphill grade along the commanded planar direction: gravity (trunk
         # frame) pulls backwards against the command when climbing
         cmd_speed = torch.sqrt(commands[:, 0] ** 2 + commands[:, 1] ** 2 + 1e-12)
         along = (gravity[:, 0] * commands[:, 0] + gravity[:, 1] * commands[:, 1]) / cmd_speed.clamp(min=1e-6)
         amp = (amp + uphill_gain * (-along - uphill_deadband).clamp(min=0.0)).clamp(max=max(max_amplitude, amplitude))
-    wave = (sin_phase * amp).unsqueeze(1) * ramp * (1.0 - mask)
+    if law_fwd.shape[0] > 0:
+        # the trunk's forward/backward push from the measured law, the rest of each foot's push
+        # (sideways, turning) as without it; the uphill term adds to both
+        px = push[:, 0:1].expand_as(vx)
+        law_amp = torch.where(px >= 0.0, _law(px.abs(), law_fwd), _law(px.abs(), law_back))
+        rest = torch.sqrt((vx - px) ** 2 + vy * vy + 1e-12)
+        rest_amp = base_amp.unsqueeze(1) * (rest / full_speed).clamp(max=1.0)
+        wave = sin_phase.unsqueeze(1) * (torch.maximum(law_amp, rest_amp) + (amp - base_amp).unsqueeze(1))
+        wave = wave * (1.0 - mask)
+    else:
+        wave = (sin_phase * amp).unsqueeze(1) * ramp * (1.0 - mask)
     hip = -tilt_y + side * wave * ux.abs()
     thigh = thigh_share * tilt_x - front * wave * uy.abs()
     calf = (1.0 - thigh_share) * tilt_x
@@ -164,11 +221,13 @@ def gait_prior(
         if cfg.uphill_gain > 0.0:
             raise ValueError("gait.uphill_gain needs the projected gravity")
         gravity = torch.zeros(commands.shape[0], 3, device=dev)
+    law_fwd, law_back = cfg.law_tensors()
     return _prior(
         commands, mask, sin_phase, FOOT_XY.to(dev), _SIDE.to(dev), _FRONT.to(dev),
         cfg.tilt, cfg.amplitude, cfg.thigh_share, cfg.full_speed, cfg.lateral_gain,
         gravity, cfg.uphill_gain, cfg.uphill_deadband, cfg.max_amplitude,
         velocity, cfg.speed_feedback, cfg.command_share,
+        law_fwd.to(dev), law_back.to(dev), cfg.tilt if cfg.tilt_backward is None else cfg.tilt_backward,
     )  # fmt: skip
 
 
@@ -187,6 +246,10 @@ class GaitPrior(torch.nn.Module):
         self.uphill_gain, self.max_amplitude = float(c.uphill_gain), float(c.max_amplitude)
         self.uphill_deadband = float(c.uphill_deadband)
         self.speed_feedback, self.command_share = float(c.speed_feedback), float(c.command_share)
+        self.tilt_backward = float(c.tilt if c.tilt_backward is None else c.tilt_backward)
+        law_fwd, law_back = c.law_tensors()
+        self.register_buffer("law_fwd", law_fwd, persistent=False)
+        self.register_buffer("law_back", law_back, persistent=False)
         self.needs_velocity = self.speed_feedback > 0.0
         if self.uphill_gain > 0.0 and "projected_gravity" not in slices:
             raise ValueError("a gait prior with uphill_gain needs the projected_gravity observation slice")
@@ -210,6 +273,7 @@ class GaitPrior(torch.nn.Module):
             self.tilt, self.amplitude, self.thigh_share, self.full_speed, self.lateral_gain,
             gravity, self.uphill_gain, self.uphill_deadband, self.max_amplitude,
             velocity, self.speed_feedback, self.command_share,
+            self.law_fwd, self.law_back, self.tilt_backward,
         )  # fmt: skip
         return offsets / self.action_scale
 
