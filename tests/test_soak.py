@@ -75,15 +75,21 @@ def test_soak_short_form(tmp_path):
 
 def test_starts_short_form(tmp_path):
     """Two bridge starts through the stand-up against a synthetic standing robot: each
-    bridge answers, reaches RUNNING or reports the fault that stopped it, and exits 0."""
+    bridge exits 0 and either answers the stand-up and the policy and reaches RUNNING, or
+    latched a fault after this machine delayed the harness's own state (the robot side's
+    fault, which the summary counts as such: docs/deploy.md, "Timing")."""
     out = tmp_path / "starts"
     res = _run_soak(out, "--starts", "2", "--run-seconds", "0.5", timeout=180)
     summary = json.loads((out / "starts.json").read_text())
     assert summary["starts"] == 2
+    faulted = [r for r in summary["results"] if r["faults"]]
     for r in summary["results"]:
         assert r["returncode"] == 0
-        assert r["latency"]["n"] > 50  # stand-up (2 s) and policy commands were answered
-        assert r["final_state"] == "RUNNING" or r["faults"]
+        if not r["faults"]:
+            assert r["final_state"] == "RUNNING"
+            assert r["latency"]["n"] > 50  # stand-up (2 s) and policy commands were answered
+    assert summary["bad_starts"] == len(faulted) == summary["bad_after_a_late_robot_state"], summary
+    assert len(faulted) < 2, "both starts latched a fault after a late harness state: rerun on a quieter machine"
     assert "bridge starts" in res.stdout
 
 
