@@ -265,6 +265,7 @@ def test_the_training_evaluation_pushes_robots_at_each_scenarios_interval():
 
     pushes = [s for s in E.QUICK if s.kind == "random"]
     assert len(pushes) == 1 and pushes[0].push_interval < pushes[0].duration and pushes[0].copies >= 4
+    assert pushes[0].duration > 5.0  # random commands change every 5 s: it must see one change
     spec = registry.get_task("caster_omni")
     still = [f"commands.ranges.{k}=[0, 0]" for k in ("lin_vel_x", "lin_vel_y", "ang_vel_yaw")]
     cfg, _ = registry.task_configs("caster_omni", still)  # random commands that are all zero: |error| = |v|
