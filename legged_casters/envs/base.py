@@ -184,23 +184,20 @@ class LeggedEnv(VecEnv):
                     raise ValueError(f"{type(self).__name__}: no method _obs_{term} for observation term {term!r}")
                 layout.append((term, int(fn().shape[1]), float(scales.get(term, 1.0))))
             self.obs_layout[group] = layout
-        noise = []
-        for term, dim, scale in self.obs_layout["policy"]:
-            amp = self.cfg.noise.scales.get(term, 0.0) * scale * self.cfg.noise.level
-            noise.append(torch.full((dim,), amp if self.cfg.noise.enabled else 0.0))
-        self.noise_vec = torch.cat(noise).to(self.device) if noise else torch.zeros(0, device=self.device)
-        unknown = set(self.cfg.noise.bias) - {term for term, _, _ in self.obs_layout["policy"]}
+        nc = self.cfg.noise
+        unknown = set(nc.bias) - {term for term, _, _ in self.obs_layout["policy"]}
         if unknown:
             raise ValueError(f"noise.bias names terms the policy does not observe: {sorted(unknown)}")
-        bias = [
-            torch.full((dim,), self.cfg.noise.bias.get(term, 0.0) * scale)
-            for term, dim, scale in self.obs_layout["policy"]
-        ]
-        self.bias_vec = torch.cat(bias).to(self.device) if bias else torch.zeros(0, device=self.device)
+        noise, bias = [torch.zeros(0)], [torch.zeros(0)]
+        for term, dim, scale in self.obs_layout["policy"]:
+            amp = nc.scales.get(term, 0.0) * scale * nc.level
+            noise.append(torch.full((dim,), amp if nc.enabled else 0.0))
+            bias.append(torch.full((dim,), nc.bias.get(term, 0.0) * scale))
+        self.noise_vec = torch.cat(noise).to(self.device)
+        self.bias_vec = torch.cat(bias).to(self.device)
         self.obs_bias = torch.zeros(self.num_envs, len(self.bias_vec), device=self.device)
         """Each env's constant observation offset this episode (noise.bias, scaled)."""
-        if self.cfg.noise.bias:  # the first episodes' draw (their reset came before the layout)
-            self.obs_bias[:] = _uniform(-1.0, 1.0, tuple(self.obs_bias.shape), self.device) * self.bias_vec
+        self._draw_obs_bias(torch.arange(self.num_envs, device=self.device))  # their reset came before the layout
         self.obs_buf = self.compute_observations()
         self._after_observations()
 
@@ -535,10 +532,18 @@ class LeggedEnv(VecEnv):
     def _latency_on(self) -> bool:
         return self.cfg.domain_rand.action_latency_range[1] > 0.0
 
+    def _draw_obs_bias(self, env_ids: torch.Tensor) -> None:
+        """A new constant observation offset (noise.bias) for these envs; nothing without one
+        (no random number is drawn, so runs without a bias keep their random streams)."""
+        if self.cfg.noise.bias:
+            self.obs_bias[env_ids] = (
+                _uniform(-1.0, 1.0, (len(env_ids), len(self.bias_vec)), self.device) * self.bias_vec
+            )
+
     def randomize(self, env_ids: torch.Tensor) -> None:
         dr, m, dev, n = self.cfg.domain_rand, self.model, self.device, len(env_ids)
-        if self.cfg.noise.bias and hasattr(self, "obs_bias"):
-            self.obs_bias[env_ids] = _uniform(-1.0, 1.0, (n, len(self.bias_vec)), dev) * self.bias_vec
+        if hasattr(self, "obs_bias"):  # not in __init__'s first reset: _init_observation_layout draws it
+            self._draw_obs_bias(env_ids)
         if self._latency_on:
             steps = torch.round(_uniform(*dr.action_latency_range, (n,), dev) / self.sim.physics_dt).long()
             self.latency_steps[env_ids] = steps.clamp(0, self.sim.decimation)

@@ -95,6 +95,9 @@ class GaitPriorCfg:
     tilt_backward: float | None = field(default=None, metadata={"min": 0.0})
     """Tilt for a foot whose push points backwards; None: `tilt`."""
 
+    def backward_tilt(self) -> float:
+        return float(self.tilt if self.tilt_backward is None else self.tilt_backward)
+
     def __post_init__(self):
         for name in ("amplitude_law", "amplitude_law_backward"):
             law = getattr(self, name)
@@ -172,25 +175,27 @@ def _prior(
     ux, uy = vx / speed.clamp(min=1e-6), vy / speed.clamp(min=1e-6)
     tilt_x = (tilt + (tilt_backward - tilt) * (ux < 0.0).to(ux.dtype)) * ramp * ux
     tilt_y = tilt * lateral_gain * ramp * uy
-    base_amp = torch.zeros_like(sin_phase) + amplitude  # a float, or one per env (scripts/top_speed.py)
-    amp = base_amp
+    amp = torch.zeros_like(sin_phase) + amplitude  # a float, or one per env (scripts/top_speed.py)
+    uphill = torch.zeros_like(amp)  # what the uphill term adds to the amplitude
     if uphill_gain > 0.0:
         # the trunk's uphill grade along the commanded planar direction: gravity (trunk
         # frame) pulls backwards against the command when climbing
         cmd_speed = torch.sqrt(commands[:, 0] ** 2 + commands[:, 1] ** 2 + 1e-12)
         along = (gravity[:, 0] * commands[:, 0] + gravity[:, 1] * commands[:, 1]) / cmd_speed.clamp(min=1e-6)
-        amp = (amp + uphill_gain * (-along - uphill_deadband).clamp(min=0.0)).clamp(max=max(max_amplitude, amplitude))
+        raised = (amp + uphill_gain * (-along - uphill_deadband).clamp(min=0.0)).clamp(
+            max=max(max_amplitude, amplitude)
+        )
+        uphill = raised - amp
     if law_fwd.shape[0] > 0:
         # the trunk's forward/backward push from the measured law, the rest of each foot's push
         # (sideways, turning) as without it; the uphill term adds to both
         px = push[:, 0:1].expand_as(vx)
         law_amp = torch.where(px >= 0.0, _law(px.abs(), law_fwd), _law(px.abs(), law_back))
-        rest = torch.sqrt((vx - px) ** 2 + vy * vy + 1e-12)
-        rest_amp = base_amp.unsqueeze(1) * (rest / full_speed).clamp(max=1.0)
-        wave = sin_phase.unsqueeze(1) * (torch.maximum(law_amp, rest_amp) + (amp - base_amp).unsqueeze(1))
-        wave = wave * (1.0 - mask)
+        rest_amp = amp.unsqueeze(1) * (torch.sqrt((vx - px) ** 2 + vy * vy + 1e-12) / full_speed).clamp(max=1.0)
+        foot_amp = torch.maximum(law_amp, rest_amp) + uphill.unsqueeze(1)
     else:
-        wave = (sin_phase * amp).unsqueeze(1) * ramp * (1.0 - mask)
+        foot_amp = (amp + uphill).unsqueeze(1) * ramp
+    wave = sin_phase.unsqueeze(1) * foot_amp * (1.0 - mask)
     hip = -tilt_y + side * wave * ux.abs()
     thigh = thigh_share * tilt_x - front * wave * uy.abs()
     calf = (1.0 - thigh_share) * tilt_x
@@ -227,7 +232,7 @@ def gait_prior(
         cfg.tilt, cfg.amplitude, cfg.thigh_share, cfg.full_speed, cfg.lateral_gain,
         gravity, cfg.uphill_gain, cfg.uphill_deadband, cfg.max_amplitude,
         velocity, cfg.speed_feedback, cfg.command_share,
-        law_fwd.to(dev), law_back.to(dev), cfg.tilt if cfg.tilt_backward is None else cfg.tilt_backward,
+        law_fwd.to(dev), law_back.to(dev), cfg.backward_tilt(),
     )  # fmt: skip
 
 
@@ -246,7 +251,7 @@ class GaitPrior(torch.nn.Module):
         self.uphill_gain, self.max_amplitude = float(c.uphill_gain), float(c.max_amplitude)
         self.uphill_deadband = float(c.uphill_deadband)
         self.speed_feedback, self.command_share = float(c.speed_feedback), float(c.command_share)
-        self.tilt_backward = float(c.tilt if c.tilt_backward is None else c.tilt_backward)
+        self.tilt_backward = c.backward_tilt()
         law_fwd, law_back = c.law_tensors()
         self.register_buffer("law_fwd", law_fwd, persistent=False)
         self.register_buffer("law_back", law_back, persistent=False)

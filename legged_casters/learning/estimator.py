@@ -44,10 +44,11 @@ class VelocityEstimator(torch.nn.Module):
             keep[start:stop] = False
         # not saved in checkpoints: it follows from the train config, and older runs (no skip) load as before
         self.register_buffer("columns", keep.nonzero().flatten(), persistent=False)
+        self.skips = bool(not keep.all())  # without a skip the input goes in as it is (no copy per step)
         self.net = MLP(len(self.columns), out_dim, list(hidden_dims), activation)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.net(x[:, self.columns])
+        return self.net(x[:, self.columns] if self.skips else x)
 
 
 class EstimatorPPO(PPO):
