@@ -20,6 +20,7 @@ import yaml
 
 from legged_casters import registry
 from legged_casters.config import load_yaml
+from legged_casters.learning import progress
 from legged_casters.robot import go2
 from legged_casters.tools import common, export, play, render, train
 
@@ -118,7 +119,7 @@ def test_run_folder_holds_checkpoints_configs_git_state_and_events(run):
     best = common.find_checkpoint(run_dir, "best")
     assert best.name == "model_best.pt"
     saved = torch.load(best, weights_only=True)
-    score = train.eval_score(saved["infos"]["eval"])
+    score = progress.eval_score(saved["infos"]["eval"])
     assert saved["infos"]["eval_score"] == pytest.approx(score)
     assert score == pytest.approx(min(e.value for e in events.Scalars("Eval/score")), rel=1e-5)
 

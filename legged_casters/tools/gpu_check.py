@@ -49,7 +49,7 @@ PROGRESS_RE = re.compile(
     r"\[(?P<task>[\w-]+)\] it (?P<it>\d+)/(?P<total>\d+) \| (?P<rate>[\d,]+) steps/s \| (?P<it_s>[\d.]+) s/it "
     r"\(collect (?P<collect>[\d.]+)\)"
 )
-"""train.py's progress line (tools/train.py, _progress_hook)."""
+"""train.py's progress line (legged_casters/learning/progress.py)."""
 MODULE_RE = re.compile(r"Module \S+ \S+ load on device '[^']+' took ([\d.]+) ms\s+\((compiled|cached)\)")
 """Warp's line for each kernel module it loads (printed unless wp.config.quiet)."""
 CHECK_RE = re.compile(r"^(PASS|FAIL)  (.+?)  \(measured (.*)\)$", re.M)
