@@ -2,6 +2,7 @@
 configs, and rsl_rl training plumbing."""
 
 import copy
+import math
 
 import numpy as np
 import pytest
@@ -158,6 +159,52 @@ def test_command_curriculum_widens_the_range_when_tracking_is_good():
     e2 = registry.make_env("go2_flat", CPU, num_envs=2)
     e2.set_state(state)
     assert e2.command_ranges["lin_vel_x"] == [-1.25, 1.25]
+
+
+def test_edge_curriculum_widens_each_end_on_its_own_tracking():
+    e = registry.make_env(
+        "go2_flat",
+        CPU + ["commands.curriculum=true", "commands.curriculum_mode=edge", "commands.max_lin_vel_x=[-1.5, 3.0]"],
+        num_envs=4,
+    )
+    sigma = e.cfg.rewards.tracking_sigma
+
+    def score(vx_measured, steps=50, length=100):
+        # envs 0/1 commanded at the forward/backward end, 2 in the middle (never counted), 3 standing
+        e.commands[:] = torch.tensor([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [0.2, 0.0, 0.0], [0.0, 0.0, 0.0]])
+        e.base_lin_vel[:, 0] = torch.tensor(vx_measured)
+        e.episode_length_buf[:] = length
+        e.terminated_buf[:] = False
+        for _ in range(steps):
+            e._score_edges()
+
+    # forward end tracked (error 0.05), backward end not (the robot stands): only +vx widens
+    score([0.95, 0.0, -3.0, 5.0])
+    e.common_step_counter = e.max_episode_length - 1
+    e.step(torch.zeros(4, 12))  # the step that completes the period
+    assert e.command_ranges["lin_vel_x"] == [-1.0, 1.25]
+    assert e.edge_tracking[1] > 0.9 and e.edge_tracking[0] < 0.1
+    assert math.isclose(e.edge_tracking[1], math.exp(-(0.05**2) / sigma), rel_tol=0.05)
+    # steps within curriculum_settle_s of a new command do not count: nothing to judge, no change
+    score([0.0, -1.0, 0.0, 0.0], length=1)
+    e.common_step_counter = 2 * e.max_episode_length - 1
+    e.step(torch.zeros(4, 12))
+    assert e.command_ranges["lin_vel_x"] == [-1.0, 1.25]
+    # now the backward end tracks; the forward band is [1.0, 1.25] and the robot at +1.0 is in it
+    score([1.0, -1.0, 0.0, 0.0])
+    e.common_step_counter = 3 * e.max_episode_length - 1
+    e.step(torch.zeros(4, 12))
+    assert e.command_ranges["lin_vel_x"] == [-1.25, 1.5]
+    # the ends stop at max_lin_vel_x
+    for k in range(4, 12):
+        score([1.0, -1.0, 0.0, 0.0])
+        e.commands[0, 0], e.commands[1, 0] = e.command_ranges["lin_vel_x"][1], e.command_ranges["lin_vel_x"][0]
+        e.base_lin_vel[:2, 0] = e.commands[:2, 0]
+        for _ in range(50):
+            e._score_edges()
+        e.common_step_counter = k * e.max_episode_length - 1
+        e.step(torch.zeros(4, 12))
+    assert e.command_ranges["lin_vel_x"] == [-1.5, 3.0]
 
 
 def test_two_iterations_of_rsl_rl_ppo(tmp_path):

@@ -150,6 +150,11 @@ class LeggedEnv(VecEnv):
         self.last_joint_vel = torch.zeros(n, self.num_actions, device=dev)
         self.common_step_counter = 0
         self._curriculum_score, self._curriculum_count = 0.0, 0
+        # "edge" curriculum: (backward end, forward end) sums of the vx tracking kernel and step counts
+        self._edge_score = torch.zeros(2, device=dev)
+        self._edge_count = torch.zeros(2, device=dev)
+        self.edge_tracking = [float("nan"), float("nan")]
+        """The last judged mean vx tracking at the (backward, forward) end ("edge" curriculum)."""
         self.external_commands = False
         """True: commands come from `set_commands` (play, deployment tests), never resampled."""
         self.extras: dict = {"log": {}}
@@ -317,6 +322,7 @@ class LeggedEnv(VecEnv):
         self._resample_on_timer()
         self.check_termination(bad_actions)
         self.compute_reward()
+        self._score_edges()
         env_ids = self.reset_buf.nonzero(as_tuple=False).flatten()
         self.extras = {"log": {}}
         if len(env_ids):
@@ -480,24 +486,78 @@ class LeggedEnv(VecEnv):
             sums[env_ids] = 0.0
         log["Curriculum/lin_vel_x_max"] = self.command_ranges["lin_vel_x"][1]
         log["Curriculum/lin_vel_x_min"] = self.command_ranges["lin_vel_x"][0]
+        if self.cfg.commands.curriculum and self.cfg.commands.curriculum_mode == "edge":
+            for side, value in zip(("backward", "forward"), self.edge_tracking, strict=True):
+                if math.isfinite(value):
+                    log[f"Curriculum/edge_tracking_{side}"] = value
         log["Diagnostics/nonfinite_resets"] = float(self.nonfinite_resets)
 
     def update_curriculum(self, env_ids: torch.Tensor) -> None:
-        """Collect the linear-tracking score of the episodes ending now; once per
-        episode length, widen the forward/backward command range if the episodes that
-        ended in that period earned on average more than `curriculum_threshold` of
-        the term's maximum. (legged_gym looks only at the envs that happen to reset on
-        that exact step.)"""
+        """ "episode" curriculum: collect the linear-tracking score of the episodes ending
+        now; once per episode length, widen the forward/backward command range if the
+        episodes that ended in that period earned on average more than
+        `curriculum_threshold` of the term's maximum. (legged_gym looks only at the envs
+        that happen to reset on that exact step.)"""
         cmd = self.cfg.commands
-        if not cmd.curriculum or "tracking_lin_vel" not in self.reward_terms:
+        if not cmd.curriculum or cmd.curriculum_mode != "episode" or "tracking_lin_vel" not in self.reward_terms:
             return
         ran = env_ids[self.episode_length_buf[env_ids] > 0]  # not the initial reset
         self._curriculum_score += float(self.episode_sums["tracking_lin_vel"][ran].sum()) / self.max_episode_length
         self._curriculum_count += len(ran)
 
+    def _score_edges(self) -> None:
+        """ "edge" curriculum: add this step's vx tracking of the robots commanded near
+        each end of the vx range (settled for `curriculum_settle_s` after a new command)."""
+        cmd = self.cfg.commands
+        if not cmd.curriculum or cmd.curriculum_mode != "edge" or self.external_commands:
+            return
+        lo, hi = self.command_ranges["lin_vel_x"]
+        every = max(1, int(round(cmd.resampling_time / self.dt)))
+        settled = (self.episode_length_buf % every) >= int(round(cmd.curriculum_settle_s / self.dt))
+        vx_cmd = self.commands[:, 0]
+        kernel = torch.exp(-((vx_cmd - self.base_lin_vel[:, 0]) ** 2) / self.cfg.rewards.tracking_sigma)
+        for side, near in enumerate(
+            (
+                vx_cmd <= min(lo + cmd.curriculum_step, -cmd.curriculum_step),
+                vx_cmd >= max(hi - cmd.curriculum_step, cmd.curriculum_step),
+            )
+        ):
+            counted = (near & settled & self._edge_eligible() & ~self.terminated_buf).to(kernel.dtype)
+            self._edge_score[side] += torch.sum(kernel * counted)
+            self._edge_count[side] += torch.sum(counted)
+
+    def _edge_eligible(self) -> torch.Tensor:
+        """Robots the "edge" curriculum judges: those told to move along x alone (a top
+        speed is asked for straight ahead, not while turning or sliding sideways)."""
+        return (self.commands[:, 1] == 0) & (self.commands[:, 2] == 0)
+
+    def _advance_edges(self) -> None:
+        cmd = self.cfg.commands
+        score, count = self._edge_score.tolist(), self._edge_count.tolist()
+        self._edge_score.zero_()
+        self._edge_count.zero_()
+        lo, hi = self.command_ranges["lin_vel_x"]
+        for side in (0, 1):
+            if not count[side]:
+                continue
+            mean = score[side] / count[side]
+            self.edge_tracking[side] = mean
+            if mean <= cmd.curriculum_threshold:
+                continue
+            if side == 0:
+                lo = max(lo - cmd.curriculum_step, cmd.max_lin_vel_x[0])
+            else:
+                hi = min(hi + cmd.curriculum_step, cmd.max_lin_vel_x[1])
+        self.command_ranges["lin_vel_x"] = [lo, hi]
+
     def _advance_curriculum(self) -> None:
         cmd = self.cfg.commands
-        if not cmd.curriculum or self.common_step_counter % self.max_episode_length or not self._curriculum_count:
+        if not cmd.curriculum or self.common_step_counter % self.max_episode_length:
+            return
+        if cmd.curriculum_mode == "edge":
+            self._advance_edges()
+            return
+        if not self._curriculum_count:
             return
         _, scale = self.reward_terms["tracking_lin_vel"]
         mean = self._curriculum_score / self._curriculum_count

@@ -50,7 +50,19 @@ class CommandsCfg:
     max_lin_vel_x: tuple[float, float] = (-1.0, 1.0)
     curriculum_step: float = field(default=0.25, metadata={"min": 0.0})
     curriculum_threshold: float = field(default=0.8, metadata={"min": 0.0, "max": 1.0})
-    """Fraction of the maximum linear-tracking reward an episode must earn on average."""
+    """Fraction of the maximum tracking an end of the range must earn on average to widen
+    (see `curriculum_mode`)."""
+    curriculum_mode: Literal["episode", "edge"] = "episode"
+    """How the curriculum judges tracking, once per episode length:
+    "episode": legged_gym's rule: the linear-tracking term (vx and vy) summed over the
+    episodes that ended in that period, divided by the episode length (a robot that fell
+    early counts its missing steps as zero); both ends of the vx range widen together.
+    "edge": each end of the vx range on its own: the robots whose vx command lies within
+    `curriculum_step` of that end, scored on vx alone (exp(-(vx - cmd)^2 / tracking_sigma)
+    per step, from `curriculum_settle_s` after each new command); that end widens by
+    `curriculum_step` when their mean is above the threshold."""
+    curriculum_settle_s: float = field(default=1.0, metadata={"min": 0.0})
+    """"edge" mode: seconds after a new command before a robot's steps count (acceleration)."""
 
     def limits(self) -> list[tuple[float, float]]:
         """(lo, hi) of vx, vy, wz that training can command: the ranges, vx widened to the
