@@ -260,7 +260,8 @@ def loopback(args, i: int) -> dict | None:
         lying_z = truths[-1].pos[2]
         procs.append(subprocess.Popen(
             module_cmd(
-                "bridge", "--policy", str(args.policy), "--standup", args.standup, "--max-state-age-ms", "100", *common
+                "bridge", "--policy", str(args.policy), "--standup", args.standup, "--max-state-age-ms", "100",
+                "--heading-hold", str(args.heading_hold), *common,
             ),
             stdout=subprocess.DEVNULL,
         ))  # fmt: skip
@@ -324,6 +325,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ap.add_argument("--standup", choices=("fold", "linear"), default="fold")
     ap.add_argument("--seconds", type=float, default=4.0, help="time a lying start has to stand (s)")
+    ap.add_argument("--heading-hold", type=float, default=0.0, help="the bridge's --heading-hold gain (loopback runs)")
     ap.add_argument("--seed", type=int, default=0)
     return ap
 
@@ -331,8 +333,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     ap = build_parser()
     args = ap.parse_args(argv)
-    if min(args.trials, args.falls, args.loopback) < 0:
-        ap.error("--trials, --falls and --loopback must be >= 0")
+    if min(args.trials, args.falls, args.loopback, args.heading_hold) < 0:
+        ap.error("--trials, --falls, --loopback and --heading-hold must be >= 0")
     meta = load_meta(args.policy)
     if meta.robot != "caster":
         ap.error(f"--policy {args.policy} drives the {meta.robot!r} robot; this check is for the caster robot")

@@ -605,6 +605,69 @@ def test_operator_command_reaches_policy_and_times_out(tmp_path, realtime):
         b.stop()
 
 
+def test_heading_hold_turns_back_to_the_heading_of_the_straight_command(tmp_path):
+    def yawed(deg):
+        half = math.radians(deg) / 2
+        return [math.cos(half), 0.0, 0.0, math.sin(half)]
+
+    b = _bridge(tmp_path, Recorder(), heading_hold=2.0, max_command=(1.0, 1.0, 0.5))
+    straight = np.array([0.5, 0.0, 0.0])
+    assert b._hold_heading(straight, yawed(30.0))[2] == 0.0  # latches 30 deg: no error yet
+    assert b._hold_heading(straight, yawed(35.0))[2] == pytest.approx(2.0 * math.radians(-5.0))
+    assert b._hold_heading(straight, yawed(20.0))[2] == pytest.approx(2.0 * math.radians(10.0))
+    assert b._hold_heading(straight, yawed(-30.0))[2] == 0.5  # clipped to max_command's |wz|
+    # the wrap: latched at 175 deg, now at -175 deg: 10 deg to the left of it, turn right
+    b.heading_ref = None
+    b._hold_heading(straight, yawed(175.0))
+    assert b._hold_heading(straight, yawed(-175.0))[2] == pytest.approx(2.0 * math.radians(-10.0))
+    # an operator's turn passes unchanged and releases the heading; so does a zero command
+    turn = np.array([0.5, 0.0, 0.3])
+    assert list(b._hold_heading(turn, yawed(90.0))) == [0.5, 0.0, 0.3] and b.heading_ref is None
+    b._hold_heading(straight, yawed(90.0))
+    assert b.heading_ref == pytest.approx(math.radians(90.0))
+    assert list(b._hold_heading(np.zeros(3), yawed(60.0))) == [0.0, 0.0, 0.0] and b.heading_ref is None
+    assert b._hold_heading(np.array([0.0, 0.3, 0.0]), yawed(60.0))[2] == 0.0  # sideways latches too
+    with pytest.raises(ValueError, match="heading_hold"):
+        _bridge(tmp_path, Recorder(), heading_hold=-1.0)
+
+
+def test_heading_hold_off_by_default_passes_the_operators_wz(tmp_path, realtime):
+    rec = Recorder()
+    b = _bridge(tmp_path, rec)
+    assert b.cfg.heading_hold == 0.0
+    seen = []
+    build = b.obs.build
+    b.obs.build = lambda msg, commands, *a: (seen.append(np.array(commands)), build(msg, commands, *a))[1]
+    s = P.Sender()
+    b.start()
+    robot = FakeRobot(b.on_state)
+    robot.quat = [math.cos(0.3), 0.0, 0.0, math.sin(0.3)]
+    try:
+        assert wait_for(lambda: b.state is P.BridgeState.RUNNING, 2.0)
+        b.on_operator(op(s, vx=0.5))
+        assert wait_for(lambda: seen and seen[-1][0] == 0.5, 1.0)
+        assert seen[-1][2] == 0.0
+    finally:
+        robot.stop()
+        b.stop()
+    rec = Recorder()
+    b = _bridge(tmp_path, rec, heading_hold=2.0)
+    seen.clear()
+    build = b.obs.build
+    b.obs.build = lambda msg, commands, *a: (seen.append(np.array(commands)), build(msg, commands, *a))[1]
+    b.start()
+    robot = FakeRobot(b.on_state)
+    try:
+        assert wait_for(lambda: b.state is P.BridgeState.RUNNING, 2.0)
+        b.on_operator(op(s, vx=0.5))
+        assert wait_for(lambda: seen and seen[-1][0] == 0.5, 1.0)
+        robot.quat = [math.cos(0.05), 0.0, 0.0, math.sin(0.05)]  # turned 0.1 rad left of the latched heading
+        assert wait_for(lambda: seen[-1][2] == pytest.approx(-0.2, abs=1e-6), 1.0)
+    finally:
+        robot.stop()
+        b.stop()
+
+
 def test_policy_exception_gives_damping(tmp_path, realtime, capsys):
     rec = Recorder()
     b = _bridge(tmp_path, rec)

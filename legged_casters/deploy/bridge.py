@@ -63,6 +63,7 @@ from legged_casters.deploy.policy import (
     load_meta,
     projected_gravity,
     tilt_deg,
+    yaw_of,
 )
 from legged_casters.deploy.standup import StandUp, StandUpCfg
 
@@ -92,6 +93,7 @@ class BridgeConfig:
     stamp_tolerance: float = 0.001  # s
     clock: str = "robot"  # "robot": step on the state stream's timestamps; "local": on this process's clock
     status_period: float = 0.1  # s
+    heading_hold: float = 0.0  # rad/s per rad: while told to move with wz 0, turn back to the latched yaw (0: off)
 
 
 class RateStats:
@@ -192,6 +194,10 @@ class Bridge:
             if config.standup == "fold"
             else None
         )
+        if config.heading_hold < 0 or not np.isfinite(config.heading_hold):
+            raise ValueError(f"heading_hold must be a finite gain >= 0, got {config.heading_hold!r}")
+        self.heading_ref: float | None = None
+        """Heading hold: the yaw (rad) latched when the operator last asked to move without turning."""
         self.transitions: list[tuple[float, P.BridgeState, P.Fault]] = []
         self.fault_detail = ""
         """What tripped the last stale-state fault, in words (printed with the transition)."""
@@ -350,6 +356,7 @@ class Bridge:
             if done:
                 self._enter(P.BridgeState.RUNNING)
                 self.running_steps = 0  # the policy's gait clock starts with the policy
+                self.heading_ref = None
             return
         # RUNNING
         if self.cfg.max_tilt_deg > 0 and (tilt := tilt_deg(msg.quat)) > self.cfg.max_tilt_deg:
@@ -360,6 +367,8 @@ class Bridge:
             commands = np.zeros(3)
         else:
             commands = self.commands
+        if self.cfg.heading_hold > 0:
+            commands = self._hold_heading(commands, msg.quat)
         obs = self.obs.build(msg, commands, self.mode_mask, self.last_actions, self.running_steps)
         self.running_steps += 1
         t0 = time.perf_counter()
@@ -375,6 +384,22 @@ class Bridge:
         self._send_command(P.CommandMode.POLICY, q_t, self.kp, self.kd, seq, dq_t)
         self.last_actions[:] = actions
         self.rate.step(now)
+
+    def _hold_heading(self, commands: np.ndarray, quat) -> np.ndarray:
+        """Heading hold (legged_gym's heading command): while the operator asks to move
+        (vx or vy not 0) with wz 0, the policy is told wz = heading_hold x (yaw at the start
+        of that command - yaw now), wrapped to +-pi and clipped to max_command's |wz|. A
+        command with wz, or a zero command, releases the yaw; the next straight command
+        latches the yaw of that moment."""
+        if commands[2] != 0.0 or (commands[0] == 0.0 and commands[1] == 0.0):
+            self.heading_ref = None
+            return commands
+        yaw = yaw_of(quat)
+        if self.heading_ref is None:
+            self.heading_ref = yaw
+        err = math.atan2(math.sin(self.heading_ref - yaw), math.cos(self.heading_ref - yaw))
+        lim = float(self.cfg.max_command[2])
+        return np.array([commands[0], commands[1], min(max(self.cfg.heading_hold * err, -lim), lim)])
 
     def _loop(self) -> None:
         while self._running:
@@ -525,6 +550,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-command", type=float, nargs=3, default=(1.0, 1.0, 1.5), metavar=("VX", "VY", "WZ"))
     p.add_argument("--stamp-tolerance-ms", type=float, default=1.0)
     p.add_argument(
+        "--heading-hold",
+        type=float,
+        default=0.0,
+        metavar="GAIN",
+        help="while told to move with wz 0, command wz = GAIN x the yaw error to the heading at the start of that "
+        "command (rad/s per rad; e.g. 2; 0: off, the operator's wz as it is)",
+    )
+    p.add_argument(
         "--clock",
         choices=("robot", "local"),
         default="robot",
@@ -570,7 +603,10 @@ NO_STATE_HINT_S = 5.0
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not (args.heading_hold >= 0 and math.isfinite(args.heading_hold)):
+        parser.error(f"--heading-hold must be a finite gain >= 0 (0: off), got {args.heading_hold}")
     if args.policy is None:
         args.policy = str(SHIPPED_POLICY)
         print(f"bridge: no --policy given: using the shipped policy {args.policy}")
@@ -590,6 +626,7 @@ def main(argv: list[str] | None = None) -> int:
         max_command=tuple(args.max_command),
         stamp_tolerance=args.stamp_tolerance_ms / 1e3,
         clock=args.clock,
+        heading_hold=args.heading_hold,
     )
     try:
         # Everything slow happens before the session opens and the process goes real-time:

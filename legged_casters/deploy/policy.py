@@ -310,6 +310,12 @@ def tilt_deg(quat_wxyz) -> float:
     return math.degrees(math.acos(max(-1.0, min(1.0, upright))))
 
 
+def yaw_of(quat_wxyz) -> float:
+    """Heading (rad, about world z, +-pi) of the unit quaternion (w, x, y, z)."""
+    w, x, y, z = (float(v) for v in quat_wxyz)
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
 class ObservationBuilder:
     """Actor observation from robot state, operator input and the previous action."""
 
