@@ -52,6 +52,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--amplitudes", help="comma-separated amplitudes (rad; default: a grid per direction)")
     ap.add_argument("--seconds", type=float, default=12.0)
     ap.add_argument("--window", type=float, default=3.0)
+    ap.add_argument(
+        "--initial-speed", type=float, default=0.0,
+        help="m/s along the direction at the start instead of a stand (does the speed depend on where it starts?)",
+    )  # fmt: skip
     args = ap.parse_args(argv)
     if not 0 < args.window < args.seconds:
         ap.error("--window must be positive and shorter than --seconds")
@@ -72,9 +76,12 @@ def main(argv: list[str] | None = None) -> int:
         }  # fmt: skip
         params = [{**base, "amplitude": a} for a in amps]
         speed, _power, fell, _mass = top_speed.rollout(
-            "caster_omni", top_speed.DIRECTIONS[name], params, args.seconds, args.window
+            "caster_omni", top_speed.DIRECTIONS[name], params, args.seconds, args.window, args.initial_speed
         )
-        print(f"[prior_law] {name}, tilt {tilt:g} rad, {gait.frequency:g} Hz, thigh_share {gait.thigh_share:g}:")
+        start = f", from {args.initial_speed:g} m/s" if args.initial_speed else ", from a stand"
+        print(
+            f"[prior_law] {name}, tilt {tilt:g} rad, {gait.frequency:g} Hz, thigh_share {gait.thigh_share:g}{start}:"
+        )
         for a, v, f in zip(amps, speed, fell, strict=True):
             print(f"    amplitude {a:.3f} rad: " + ("fell" if f else f"{v:+.2f} m/s"))
         key = "amplitude_law" if name == "forward" else "amplitude_law_backward"

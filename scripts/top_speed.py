@@ -44,8 +44,12 @@ START = {"frequency": 2.0, "amplitude": 0.2, "tilt": 0.2, "thigh_share": 0.0, "l
 """caster_omni's prior: the search starts there."""
 
 
-def rollout(task: str, direction: tuple[float, float], params: list[dict], seconds: float, window: float):
-    """Each parameter set on its own robot; returns (speed, power, fell) arrays."""
+def rollout(
+    task: str, direction: tuple[float, float], params: list[dict], seconds: float, window: float,
+    initial_speed: float = 0.0,
+):  # fmt: skip
+    """Each parameter set on its own robot; returns (speed, power, fell) arrays. With
+    `initial_speed` (m/s) every trunk starts moving that fast along the direction."""
     n = len(params)
     env_cfg, _ = registry.task_configs(
         task, {**EVAL_SETTINGS, "num_envs": n, "episode_length_s": seconds + 5.0, "sim.backend": "cpu"}
@@ -56,6 +60,10 @@ def rollout(task: str, direction: tuple[float, float], params: list[dict], secon
         env.set_commands(cmd)
         env.set_mode("four_wheel")
         env.reset()
+        if initial_speed:
+            qvel = env.sim.qvel.clone()
+            qvel[:, 0:2] = initial_speed * torch.tensor(direction, dtype=qvel.dtype)
+            env.sim.reset(None, env.sim.qpos.clone(), qvel)
 
         def column(key: str) -> torch.Tensor:
             return torch.tensor([p[key] for p in params], dtype=torch.float32)
