@@ -6,7 +6,8 @@
 No policy: each robot runs caster_omni's prior alone (frequency, thigh_share and
 lateral_gain as configured) at its own amplitude and the given tilt, under a saturating
 command along the direction (full tilt), in the evaluation setting (no noise, pushes or
-randomisation), from a stand; `scripts/top_speed.py`'s rollout. Speed: displacement
+randomisation), from a stand (or, with `--initial-speed`, from a trunk already moving
+that fast along the direction); `scripts/top_speed.py`'s rollout. Speed: displacement
 along the direction over the last `--window` s of `--seconds`, a fall marked F.
 
 Prints one row per amplitude and the monotone part of the table as a `gait.amplitude_law`
@@ -79,9 +80,7 @@ def main(argv: list[str] | None = None) -> int:
             "caster_omni", top_speed.DIRECTIONS[name], params, args.seconds, args.window, args.initial_speed
         )
         start = f", from {args.initial_speed:g} m/s" if args.initial_speed else ", from a stand"
-        print(
-            f"[prior_law] {name}, tilt {tilt:g} rad, {gait.frequency:g} Hz, thigh_share {gait.thigh_share:g}{start}:"
-        )
+        print(f"[prior_law] {name}, tilt {tilt:g} rad, {gait.frequency:g} Hz, thigh_share {gait.thigh_share:g}{start}:")
         for a, v, f in zip(amps, speed, fell, strict=True):
             print(f"    amplitude {a:.3f} rad: " + ("fell" if f else f"{v:+.2f} m/s"))
         key = "amplitude_law" if name == "forward" else "amplitude_law_backward"

@@ -178,8 +178,9 @@ def test_edge_curriculum_widens_each_end_on_its_own_tracking():
         for _ in range(steps):
             e._score_edges()
 
-    # forward end tracked (error 0.05), backward end not (the robot stands): only +vx widens
-    score([0.95, 0.0, -3.0, 5.0])
+    # forward end tracked (error 0.05), backward end not (the robot stands): only +vx widens;
+    # a robot whose state went non-finite (env 2, not in a band) changes nothing
+    score([0.95, 0.0, float("nan"), 5.0])
     e.common_step_counter = e.max_episode_length - 1
     e.step(torch.zeros(4, 12))  # the step that completes the period
     assert e.command_ranges["lin_vel_x"] == [-1.0, 1.25]
@@ -205,6 +206,10 @@ def test_edge_curriculum_widens_each_end_on_its_own_tracking():
         e.common_step_counter = k * e.max_episode_length - 1
         e.step(torch.zeros(4, 12))
     assert e.command_ranges["lin_vel_x"] == [-1.5, 3.0]
+    with pytest.raises(ValueError, match="curriculum_settle_s"):
+        registry.make_env(
+            "go2_flat", CPU + ["commands.curriculum_mode=edge", "commands.curriculum_settle_s=20"], num_envs=1
+        )
 
 
 def test_two_iterations_of_rsl_rl_ppo(tmp_path):

@@ -387,10 +387,10 @@ class Bridge:
 
     def _hold_heading(self, commands: np.ndarray, quat) -> np.ndarray:
         """Heading hold (legged_gym's heading command): while the operator asks to move
-        (vx or vy not 0) with wz 0, the policy is told wz = heading_hold x (yaw at the start
-        of that command - yaw now), wrapped to +-pi and clipped to max_command's |wz|. A
-        command with wz, or a zero command, releases the yaw; the next straight command
-        latches the yaw of that moment."""
+        (vx or vy not 0) with wz 0, the policy is told wz = heading_hold x (latched yaw -
+        yaw now), wrapped to +-pi and clipped to max_command's |wz|. The yaw is latched at
+        the first such step since the last release; a command with wz, or a zero command,
+        releases it (one straight command followed by another keeps the latch)."""
         if commands[2] != 0.0 or (commands[0] == 0.0 and commands[1] == 0.0):
             self.heading_ref = None
             return commands

@@ -141,6 +141,12 @@ class LeggedEnv(VecEnv):
                 f"domain_rand.action_latency_range {(lo, hi)}: need 0 <= low <= high <= the control period "
                 f"{self.dt:g} s"
             )
+        cmd_cfg = self.cfg.commands
+        if cmd_cfg.curriculum_mode == "edge" and cmd_cfg.curriculum_settle_s >= cmd_cfg.resampling_time:
+            raise ValueError(
+                f"commands.curriculum_settle_s {cmd_cfg.curriculum_settle_s:g} s must be shorter than "
+                f"commands.resampling_time {cmd_cfg.resampling_time:g} s, or the edge curriculum judges no step"
+            )
         self.commands = torch.zeros(n, 3, device=dev)
         self.episode_length_buf = torch.zeros(n, dtype=torch.long, device=dev)
         self.reset_buf = torch.zeros(n, dtype=torch.bool, device=dev)
@@ -507,7 +513,8 @@ class LeggedEnv(VecEnv):
 
     def _score_edges(self) -> None:
         """ "edge" curriculum: add this step's vx tracking of the robots commanded near
-        each end of the vx range (settled for `curriculum_settle_s` after a new command)."""
+        each end of the vx range (within `curriculum_step` of it and at least that far from
+        zero), settled for `curriculum_settle_s` after a new command, not ending now."""
         cmd = self.cfg.commands
         if not cmd.curriculum or cmd.curriculum_mode != "edge" or self.external_commands:
             return
@@ -522,8 +529,9 @@ class LeggedEnv(VecEnv):
                 vx_cmd >= max(hi - cmd.curriculum_step, cmd.curriculum_step),
             )
         ):
-            counted = (near & settled & self._edge_eligible() & ~self.terminated_buf).to(kernel.dtype)
-            self._edge_score[side] += torch.sum(kernel * counted)
+            counted = near & settled & self._edge_eligible() & ~self.terminated_buf
+            # where(), not a product: a robot whose state went non-finite must not turn the sum into NaN
+            self._edge_score[side] += torch.sum(torch.where(counted, kernel, torch.zeros_like(kernel)))
             self._edge_count[side] += torch.sum(counted)
 
     def _edge_eligible(self) -> torch.Tensor:
@@ -542,7 +550,7 @@ class LeggedEnv(VecEnv):
                 continue
             mean = score[side] / count[side]
             self.edge_tracking[side] = mean
-            if mean <= cmd.curriculum_threshold:
+            if not mean > cmd.curriculum_threshold:  # NaN never widens
                 continue
             if side == 0:
                 lo = max(lo - cmd.curriculum_step, cmd.max_lin_vel_x[0])

@@ -413,7 +413,7 @@ def caster_omni_cfg() -> CasterOmniCfg:
     # (straight, four casters) track vx. The episode rule never widened it (runs 9, 10):
     # it scores vy, turning and the two-caster modes too. caster_omni_speed, in training
     # conditions (its mean + noise of std 0.2), scores 0.60-0.64 at the -1 m/s end and
-    # 0.74 at +1 m/s: 0.6 is an RMS vx error of about 0.36 m/s.
+    # 0.74 at +1 m/s: 0.6 is the score of a constant vx error of 0.36 m/s.
     cfg.commands.curriculum_mode = "edge"
     cfg.commands.curriculum_threshold = 0.6
     return cfg

@@ -58,11 +58,15 @@ class CommandsCfg:
     episodes that ended in that period, divided by the episode length (a robot that fell
     early counts its missing steps as zero); both ends of the vx range widen together.
     "edge": each end of the vx range on its own: the robots whose vx command lies within
-    `curriculum_step` of that end, scored on vx alone (exp(-(vx - cmd)^2 / tracking_sigma)
-    per step, from `curriculum_settle_s` after each new command); that end widens by
-    `curriculum_step` when their mean is above the threshold."""
+    `curriculum_step` of that end and at least `curriculum_step` from zero (a standing
+    robot never counts), told to move along x alone (and, on the caster robot, in
+    four-wheel mode), scored on vx alone (exp(-(vx - cmd)^2 / tracking_sigma) per step,
+    from `curriculum_settle_s` after each new command, the step a robot falls excluded);
+    that end widens by `curriculum_step` when their mean is above the threshold."""
     curriculum_settle_s: float = field(default=1.0, metadata={"min": 0.0})
-    """"edge" mode: seconds after a new command before a robot's steps count (acceleration)."""
+    """"edge" mode: seconds after a new command before a robot's steps count (acceleration);
+    shorter than `resampling_time`. (train.py starts the episodes at random lengths, so in
+    the first resampling period a robot may count from a stand.)"""
 
     def limits(self) -> list[tuple[float, float]]:
         """(lo, hi) of vx, vy, wz that training can command: the ranges, vx widened to the
