@@ -134,7 +134,7 @@ def test_log_parsers_match_the_tools():
     log = "Module mujoco_warp._src.smooth 439a86e load on device 'cuda:0' took 2100.50 ms  (compiled)\n"
     log += "Module _nxn_broadphase 8df3760 load on device 'cuda:0' took 0.68 ms  (cached)\n"
     assert gpu_check.warp_modules(log) == {"compiled": 1, "compiled_s": 2.1, "cached": 1, "cached_s": 0.0}
-    src = (REPO / "legged_casters" / "tools" / "train.py").read_text()
+    src = (REPO / "legged_casters" / "learning" / "progress.py").read_text()  # train.py's progress line
     assert "steps/s | {it_time:.2f} s/it " in src and "(collect {kw['collect_time']:.2f})" in src
     assert "verdict: {passed}/{len(checks)} checks passed" in (REPO / "legged_casters/tools/evaluate.py").read_text()
 
