@@ -95,6 +95,10 @@ class BridgeConfig:
     status_period: float = 0.1  # s
     heading_hold: float = 0.0  # rad/s per rad: while told to move with wz 0, turn back to the latched yaw (0: off)
 
+    def __post_init__(self):
+        if not (self.heading_hold >= 0 and math.isfinite(self.heading_hold)):
+            raise ValueError(f"heading_hold must be a finite gain >= 0 (0: off), got {self.heading_hold!r}")
+
 
 class RateStats:
     """Policy-step periods over a sliding window."""
@@ -194,8 +198,6 @@ class Bridge:
             if config.standup == "fold"
             else None
         )
-        if config.heading_hold < 0 or not np.isfinite(config.heading_hold):
-            raise ValueError(f"heading_hold must be a finite gain >= 0, got {config.heading_hold!r}")
         self.heading_ref: float | None = None
         """Heading hold: the yaw (rad) latched when the operator last asked to move without turning."""
         self.transitions: list[tuple[float, P.BridgeState, P.Fault]] = []
@@ -605,8 +607,6 @@ NO_STATE_HINT_S = 5.0
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    if not (args.heading_hold >= 0 and math.isfinite(args.heading_hold)):
-        parser.error(f"--heading-hold must be a finite gain >= 0 (0: off), got {args.heading_hold}")
     if args.policy is None:
         args.policy = str(SHIPPED_POLICY)
         print(f"bridge: no --policy given: using the shipped policy {args.policy}")
@@ -615,19 +615,22 @@ def main(argv: list[str] | None = None) -> int:
     except (PolicyFormatError, FileNotFoundError) as e:
         print(f"bridge: error: {e}", file=sys.stderr)
         return 2
-    cfg = BridgeConfig(
-        backend=args.backend,
-        standup=args.standup,
-        standup_time=args.standup_time,
-        max_tilt_deg=args.max_tilt_deg,
-        max_state_age=None if args.max_state_age_ms is None else args.max_state_age_ms / 1e3,
-        damping_kd=args.damping_kd,
-        operator_timeout=args.operator_timeout,
-        max_command=tuple(args.max_command),
-        stamp_tolerance=args.stamp_tolerance_ms / 1e3,
-        clock=args.clock,
-        heading_hold=args.heading_hold,
-    )
+    try:
+        cfg = BridgeConfig(
+            backend=args.backend,
+            standup=args.standup,
+            standup_time=args.standup_time,
+            max_tilt_deg=args.max_tilt_deg,
+            max_state_age=None if args.max_state_age_ms is None else args.max_state_age_ms / 1e3,
+            damping_kd=args.damping_kd,
+            operator_timeout=args.operator_timeout,
+            max_command=tuple(args.max_command),
+            stamp_tolerance=args.stamp_tolerance_ms / 1e3,
+            clock=args.clock,
+            heading_hold=args.heading_hold,
+        )
+    except ValueError as e:  # BridgeConfig checks its values
+        parser.error(str(e).replace("heading_hold", "--heading-hold"))
     try:
         # Everything slow happens before the session opens and the process goes real-time:
         # the runtime's import, the session's creation and its first runs (under SCHED_FIFO

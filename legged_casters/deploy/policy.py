@@ -311,7 +311,8 @@ def tilt_deg(quat_wxyz) -> float:
 
 
 def yaw_of(quat_wxyz) -> float:
-    """Heading (rad, about world z, +-pi) of the unit quaternion (w, x, y, z)."""
+    """Heading (rad, about world z, +-pi) of the unit quaternion (w, x, y, z): the numpy twin
+    of `utils.math.yaw_from_quat`, for the robot side, which runs without torch."""
     w, x, y, z = (float(v) for v in quat_wxyz)
     return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 

@@ -521,6 +521,7 @@ class LeggedEnv(VecEnv):
         lo, hi = self.command_ranges["lin_vel_x"]
         every = max(1, int(round(cmd.resampling_time / self.dt)))
         settled = (self.episode_length_buf % every) >= int(round(cmd.curriculum_settle_s / self.dt))
+        judged = settled & self._edge_eligible() & ~self.terminated_buf
         vx_cmd = self.commands[:, 0]
         kernel = torch.exp(-((vx_cmd - self.base_lin_vel[:, 0]) ** 2) / self.cfg.rewards.tracking_sigma)
         for side, near in enumerate(
@@ -529,7 +530,7 @@ class LeggedEnv(VecEnv):
                 vx_cmd >= max(hi - cmd.curriculum_step, cmd.curriculum_step),
             )
         ):
-            counted = near & settled & self._edge_eligible() & ~self.terminated_buf
+            counted = near & judged
             # where(), not a product: a robot whose state went non-finite must not turn the sum into NaN
             self._edge_score[side] += torch.sum(torch.where(counted, kernel, torch.zeros_like(kernel)))
             self._edge_count[side] += torch.sum(counted)
