@@ -22,9 +22,10 @@ than 10 deg, from then to the end of the 4 s.
 **Falls** (``--falls N``): from a stand-up on the floor, the policy skates at vx 0.5 for
 2 s; a horizontal push in a random direction (100 N for 0.2 s at the trunk, 25 % more
 every second until the bridge latches FALLEN) knocks it over; 2 s later the operator
-sends a reset; the bridge stands it up again, and the policy skates at vx 0.5 for 5 s.
-Success: no fault, upright at the end (tilt under 10 deg, trunk above 0.25 m) and at
-least 1.5 m travelled.
+sends a reset; the bridge stands it up again (rolling it onto its belly first when it lies
+on its back or side; ``--no-righting``: without), the operator waits until the policy
+runs and 1 s more, and the policy skates at vx 0.5 for 5 s. Success: no fault, upright at
+the end (tilt under 10 deg, trunk above 0.25 m) and at least 1.5 m travelled.
 
 **Loopback** (``--loopback N``): the real chain, each part its own process over zenoh on
 this machine: ``sim_robot --startup damping`` (it collapses from its keyframe for 3 s;
@@ -118,8 +119,8 @@ class Chain:
         if which == "cmd":
             self.robot.on_command(payload)
 
-    def attach_bridge(self) -> Bridge:
-        cfg = BridgeConfig(standup=self.standup, max_state_age=1e3, operator_timeout=0.0)
+    def attach_bridge(self, **kw) -> Bridge:
+        cfg = BridgeConfig(standup=self.standup, max_state_age=1e3, operator_timeout=0.0, **kw)
         self.bridge = Bridge(self.meta, cfg, self._from_bridge, self.runner)
         return self.bridge
 
@@ -161,8 +162,8 @@ def lying_starts(args, meta, runner) -> tuple[int, list[float], list[str]]:
     for i in range(args.trials):
         chain = Chain(meta, runner, args.standup, qpos[i], qvel[i])
         chain.run(3.0)  # no commands: the robot damps and collapses
-        z0 = float(chain.robot.data.qpos[2])
-        chain.attach_bridge()
+        z0, tilt0 = float(chain.robot.data.qpos[2]), chain.tilt()
+        chain.attach_bridge(righting=not args.no_righting)
         t = chain.time_to_stand(args.seconds)
         if t is not None and chain.bridge.state is P.BridgeState.RUNNING:
             stood += 1
@@ -170,37 +171,56 @@ def lying_starts(args, meta, runner) -> tuple[int, list[float], list[str]]:
         else:
             d = chain.robot.data
             failures.append(
-                f"start {i}: lying at z {z0:.3f} m -> z {d.qpos[2]:.3f} m, bridge {chain.bridge.state.name}"
+                f"start {i}: lying at z {z0:.3f} m, tilted {tilt0:.0f} deg -> z {d.qpos[2]:.3f} m, tilted "
+                f"{chain.tilt():.0f} deg, bridge {chain.bridge.state.name}"
                 + (f" ({chain.bridge.fault.name})" if chain.bridge.fault else "")
+                + "".join(f"; {note}" for note in chain.bridge.notes)
             )
         if (i + 1) % 10 == 0:
             print(f"[standup_check] lying starts {i + 1}/{args.trials}: {stood} stood", flush=True)
     return stood, times, failures
 
 
+def knock_over(meta, runner, standup: str, rng, **bridge) -> tuple[Chain, float | None]:
+    """A robot stood up on the floor, skating at vx 0.5 for 2 s, pushed in a random direction
+    (100 N for 0.2 s, 25 % more every second) until the bridge latches FALLEN, then damped
+    for 2 s: (the chain, the push that knocked it over in N; None if 1000 N did not)."""
+    chain = Chain(meta, runner, standup)
+    chain.run(1.0)
+    chain.attach_bridge(**bridge)
+    chain.run(4.0)
+    chain.operate(0.5)
+    chain.run(2.0)
+    angle = rng.uniform(0.0, 2.0 * math.pi)
+    force = 100.0
+    while chain.bridge.fault is not P.Fault.FALLEN and force <= 1000.0:
+        chain.run(1.0, push=force * np.array([math.cos(angle), math.sin(angle), 0.0]), push_s=0.2)
+        force *= 1.25
+    if chain.bridge.fault is not P.Fault.FALLEN:
+        return chain, None
+    chain.run(2.0)
+    return chain, force / 1.25
+
+
 def fall_recovery(args, meta, runner, rng) -> tuple[int, list[str]]:
     ok, notes = 0, []
     for i in range(args.falls):
-        chain = Chain(meta, runner, args.standup)
-        chain.run(1.0)
-        chain.attach_bridge()
-        chain.run(4.0)
-        chain.operate(0.5)
-        chain.run(2.0)
-        angle = rng.uniform(0.0, 2.0 * math.pi)
-        force = 100.0
-        while chain.bridge.fault is not P.Fault.FALLEN and force <= 1000.0:
-            chain.run(1.0, push=force * np.array([math.cos(angle), math.sin(angle), 0.0]), push_s=0.2)
-            force *= 1.25
-        if chain.bridge.fault is not P.Fault.FALLEN:
+        chain, force = knock_over(meta, runner, args.standup, rng, righting=not args.no_righting)
+        if force is None:
             notes.append(f"fall {i}: pushes up to 1000 N for 0.2 s did not knock it over")
             print(f"[standup_check] {notes[-1]}", flush=True)
             continue
-        chain.run(2.0)
         lying = chain.tilt()
         chain.operate(0.0, reset=True)
-        fold = chain.bridge.folding
-        chain.run((fold.duration if fold else chain.bridge.cfg.standup_time) + 1.0)  # stand-up, 1 s of vx 0
+        b = chain.bridge
+        longest = (b.folding.duration if b.folding else b.cfg.standup_time) + (
+            b.righting.duration * b.righting.cfg.max_tries if b.righting else 0.0
+        )
+        standup_s = 0.0
+        while b.state is not P.BridgeState.RUNNING and b.fault is P.Fault.NONE and standup_s < longest + 1.0:
+            chain.run(0.1)
+            standup_s += 0.1
+        chain.run(1.0)  # 1 s of vx 0
         chain.operate(0.5)
         x0 = chain.robot.data.qpos[:2].copy()
         chain.run(5.0)
@@ -208,8 +228,8 @@ def fall_recovery(args, meta, runner, rng) -> tuple[int, list[str]]:
         good = chain.bridge.state is P.BridgeState.RUNNING and chain.upright() and dist >= 1.5
         ok += good
         notes.append(
-            f"fall {i}: pushed with {force / 1.25:.0f} N, lying tilted {lying:.0f} deg, "
-            f"after reset {chain.bridge.state.name}"
+            f"fall {i}: pushed with {force:.0f} N, lying tilted {lying:.0f} deg, "
+            f"after reset {chain.bridge.state.name} ({len(b.notes)} righting tries, stand-up {standup_s:.1f} s)"
             + (f" ({chain.bridge.fault.name}: {chain.bridge.fault_detail})" if chain.bridge.fault else "")
             + f", trunk at {chain.robot.data.qpos[2]:.3f} m (stand {chain.stand_z:.3f}), tilt {chain.tilt():.0f} deg, "
             f"{dist:.2f} m in 5 s at vx 0.5: " + ("ok" if good else "FAILED")
@@ -325,6 +345,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ap.add_argument("--standup", choices=("fold", "linear"), default="fold")
     ap.add_argument("--seconds", type=float, default=4.0, help="time a lying start has to stand (s)")
+    ap.add_argument("--no-righting", action="store_true", help="the bridge's --no-righting (lying starts and falls)")
     ap.add_argument("--heading-hold", type=float, default=0.0, help="the bridge's --heading-hold gain (loopback runs)")
     ap.add_argument("--seed", type=int, default=0)
     return ap

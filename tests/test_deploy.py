@@ -32,7 +32,7 @@ from legged_casters.deploy.policy import (
 )
 from legged_casters.deploy.sim_robot import ZenohSimRobot
 from legged_casters.deploy.simple_policy import DEFAULT_TERMS, write_policy
-from legged_casters.deploy.standup import StandUp, StandUpCfg
+from legged_casters.deploy.standup import Righting, RightingCfg, StandUp, StandUpCfg
 from legged_casters.robot import build, go2
 from legged_casters.utils.math import quat_rotate_inverse
 
@@ -449,6 +449,102 @@ def test_fold_standup_levels_the_trunk_with_its_legs_and_hips():
     assert list(names[:3]) == ["FL_hip_joint", "FL_thigh_joint", "FL_calf_joint"]
     with pytest.raises(ValueError, match="linear"):
         StandUp(["a", "b"], np.zeros(2))
+
+
+def test_righting_keyframes_are_mirrored_by_the_side_that_lies_down():
+    """The legs on the lower side get the keyframe's first half whichever side that is;
+    hips turn outwards by the same angle on both sides; every target is clipped to the
+    joint limits and the motion ends on the last keyframe."""
+    names = list(go2.ACTUATED_JOINTS)
+    limits = np.array([[-1.0472, 1.0472], [-1.5708, 3.4907], [-2.7227, -0.83776]] * 4)
+    cfg = RightingCfg()
+    r = Righting(names, cfg, limits)
+    start = np.asarray(go2.default_joint_positions())
+    end = sum(cfg.durations)
+    left_down = r.targets(end, start, 1.0).reshape(4, 3)  # FL, FR, RL, RR
+    right_down = r.targets(end, start, -1.0).reshape(4, 3)
+    mirror = np.array([1, 0, 3, 2])  # FL <-> FR, RL <-> RR
+    assert np.allclose(left_down[:, 1:], right_down[mirror, 1:])
+    assert np.allclose(left_down[:, 0], -right_down[mirror, 0])
+    last = np.array(cfg.keyframes[-1])
+    expect_fl = np.clip([last[0], last[1], last[3]], limits[:3, 0], limits[:3, 1])  # FL on the lower side
+    expect_rr = np.clip([-last[4], last[6], last[7]], limits[:3, 0], limits[:3, 1])  # RR: upper side, hip mirrored
+    assert np.allclose(left_down[0], expect_fl) and np.allclose(left_down[3], expect_rr)
+    assert np.allclose(r.targets(0.0, start, 1.0), start)  # starts from the measured pose
+    batch = r.targets(np.array([0.3, end]), np.stack([start, start]), np.array([1.0, -1.0]))
+    assert np.allclose(batch[0], r.targets(0.3, start, 1.0)) and np.allclose(batch[1], right_down.ravel())
+    assert r.needed(np.array([0.0, 0.0, 1.0])) and not r.needed(np.array([0.0, -0.5, -0.86]))  # 180 / 31 deg
+    assert r.needed(np.array([0.0, -0.7, -0.71]), 40.0) and not r.needed(np.array([0.0, -0.7, -0.71]), 60.0)
+    for bad in (
+        {"durations": (0.5,)},
+        {"keyframes": ((0.0,) * 7,), "durations": (0.5,)},
+        {"durations": (0.5, 0.0, 0.5)},
+        {"start_tilt_deg": 70.0},
+        {"max_tries": 0},
+    ):
+        with pytest.raises(ValueError, match="righting"):
+            RightingCfg(**bad)
+
+
+def _feed(b: Bridge, sender: P.Sender, steps: int, k0: int, quat, q=None) -> int:
+    """Deliver `steps` states 20 ms apart (robot clock k * DT) to a bridge in this thread."""
+    for k in range(k0, k0 + steps):
+        state = standing_state(sender, q, int(k * DT * 1e9))
+        state.quat = list(quat)
+        b.on_state(state.encode())
+    return k0 + steps
+
+
+def test_a_robot_on_its_back_is_righted_first_and_damped_after_the_last_try(tmp_path):
+    """Upside down (tilt 180 deg): the stand-up sends the righting targets; a robot still on
+    its back after each try starts another, and after max_tries the bridge damps with
+    FALLEN. Once upright after a try, the fold stand-up starts from the pose it is in."""
+    upside_down, upright = [0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]
+    rec = Recorder()
+    b = _bridge(tmp_path, rec, standup="fold", max_state_age=1e3)
+    sender = P.Sender()
+    r = b.righting
+    per_try = math.ceil(r.duration / DT - 1e-9)  # control steps of a try: the last one judges the tilt
+    k = _feed(b, sender, per_try * r.cfg.max_tries, 0, upside_down)
+    assert b.state is P.BridgeState.DAMPING and b.fault is P.Fault.FALLEN
+    assert "after righting, after 3 stand-up tries" in b.fault_detail
+    assert [n.split(" (")[0] for n in b.notes] == [f"STANDUP: righting, try {i} of 3" for i in (1, 2, 3)]
+    cmds = [c for _, c in rec.cmds if c.mode == P.CommandMode.STANDUP]
+    start = np.asarray(go2.default_joint_positions())
+    side = float(Righting.side_down(np.array([0.0, 0.0, 1.0])))
+    for i in (0, per_try // 2, per_try - 1):
+        assert np.allclose(cmds[i].q, r.targets((i + 1) * DT, start, side), atol=1e-5)
+    assert np.allclose(cmds[per_try].q, r.targets(DT, start, side), atol=1e-5)  # try 2 starts over
+
+    rec2 = Recorder()
+    b2 = _bridge(tmp_path, rec2, standup="fold", max_state_age=1e3)
+    k = _feed(b2, sender, per_try - 1, k, upside_down)
+    crouch = start + np.tile([0.2, 0.3, -0.4], 4)
+    k = _feed(b2, sender, round(b2.folding.duration / DT) + 2, k, upright, crouch)
+    assert b2.state is P.BridgeState.RUNNING and len(b2.notes) == 1
+    fold = [c.q for _, c in rec2.cmds if c.mode == P.CommandMode.STANDUP][per_try:]
+    assert np.allclose(fold[0], b2.folding.targets(DT, crouch, np.array([0.0, 0.0, -1.0])), atol=1e-5)
+
+    # a fold that ends tilted 30 deg (rolled about +x: right side down, propped up, not standing)
+    # does not start the policy; one that tips the trunk to 70 deg is cut short: both right it again
+    tilted_30, tilted_70 = [math.cos(math.radians(15)), math.sin(math.radians(15)), 0.0, 0.0], [
+        math.cos(math.radians(35)), math.sin(math.radians(35)), 0.0, 0.0]  # fmt: skip
+    b4 = _bridge(tmp_path, Recorder(), standup="fold", max_state_age=1e3)
+    fold_steps = math.ceil(b4.folding.duration / DT - 1e-9)
+    k = _feed(b4, sender, fold_steps, k, tilted_30)
+    assert b4.state is P.BridgeState.STANDUP and b4.notes == [
+        "STANDUP: righting, try 2 of 3 (trunk tilted 30 deg, right side down)"]  # fmt: skip
+    b5 = _bridge(tmp_path, Recorder(), standup="fold", max_state_age=1e3)
+    k = _feed(b5, sender, 5, k, upright)
+    k = _feed(b5, sender, 1, k, tilted_70)
+    assert b5.righting_side is not None and b5.notes[0].startswith("STANDUP: righting, try 2 of 3 (trunk tilted 70")
+
+    rec3 = Recorder()
+    b3 = _bridge(tmp_path, rec3, standup="fold", righting=False, max_state_age=1e3)
+    assert b3.righting is None
+    _feed(b3, sender, 3, k, upside_down)
+    assert b3.state is P.BridgeState.STANDUP and not b3.notes
+    assert np.allclose(rec3.cmds[0][1].q, b3.folding.targets(DT, start, np.array([0.0, 0.0, 1.0])), atol=1e-5)
 
 
 def test_a_fall_while_running_damps_until_a_reset_stands_it_up_again(tmp_path, realtime):

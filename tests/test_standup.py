@@ -68,6 +68,47 @@ def test_the_bridge_damps_a_fallen_robot_and_a_reset_runs_the_stand_up_again(che
     assert states[:2] == [P.BridgeState.WAITING, P.BridgeState.STANDUP]
 
 
+def _on_its_back(check, meta, runner, **bridge):
+    """A robot dropped upside down, damped 2 s (it lies on its back), then the bridge starts."""
+    import mujoco
+
+    from legged_casters.robot import build
+
+    chain = check.Chain(meta, runner, "fold")
+    m, d = chain.robot.model, chain.robot.data
+    d.qpos[:] = m.key_qpos[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, build.STAND_KEY)]
+    d.qpos[2], d.qpos[3:7] = 0.35, [0.0, 1.0, 0.0, 0.0]  # 180 deg about the trunk's x axis
+    d.qvel[:] = 0.0
+    mujoco.mj_forward(m, d)
+    chain.run(2.0)
+    assert chain.tilt() > 150.0
+    chain.attach_bridge(**bridge)
+    return chain
+
+
+def test_a_robot_on_its_back_is_righted_stands_up_and_skates(check, shipped):
+    """The righting keyframes roll it onto its belly, the fold stands it up, the policy
+    skates; without righting the fold cannot, and the bridge damps it as fallen."""
+    meta, runner = shipped
+    chain = _on_its_back(check, meta, runner)
+    b = chain.bridge
+    for _ in range(120):  # up to 12 s
+        chain.run(0.1)
+        if b.state is not P.BridgeState.STANDUP:
+            break
+    assert b.state is P.BridgeState.RUNNING and b.fault is P.Fault.NONE
+    assert b.notes and b.notes[0].startswith("STANDUP: righting, try 1 of 3")
+    chain.run(1.0)
+    chain.operate(0.5)
+    x0 = chain.robot.data.qpos[:2].copy()
+    chain.run(3.0)
+    assert chain.upright() and np.linalg.norm(chain.robot.data.qpos[:2] - x0) > 0.8
+
+    chain = _on_its_back(check, meta, runner, righting=False)
+    chain.run(chain.bridge.folding.duration + 1.0)
+    assert chain.bridge.fault is P.Fault.FALLEN and not chain.bridge.notes
+
+
 @pytest.mark.parametrize("robot", ["sim", "go2"])
 def test_the_process_chain_stands_up_from_lying_and_skates(check, robot):
     """sim_robot, or fake_go2 + go2_adapter over loopback DDS (started damped: it lies) ->

@@ -19,7 +19,10 @@ policy.pt). The control loop and its safety rules (docs/deploy.md has the detail
 * STANDUP: with ``--standup fold`` (the default) the legs fold, tuck under the trunk and
   lift to ``default_joint_pos`` (the lift takes ``--standup-time``) with attitude feedback
   from the IMU, which stands a caster robot up from the floor
-  (legged_casters.deploy.standup); with ``--standup linear`` the leg targets ramp from
+  (legged_casters.deploy.standup). Before the fold, a robot tilted more than 40 deg (on
+  its back or side, after a fall) is first rolled onto its belly by the legs' righting
+  keyframes, up to 3 tries, else DAMPING with fault FALLEN (``--no-righting``: off); with
+  ``--standup linear`` the leg targets ramp from
   the measured pose to ``default_joint_pos`` over ``--standup-time``. Export gains;
   driving wheels are held still (velocity target 0). Then the policy runs (RUNNING).
 * RUNNING with the trunk tilted more than ``--max-tilt-deg`` from upright (default 45;
@@ -65,7 +68,7 @@ from legged_casters.deploy.policy import (
     tilt_deg,
     yaw_of,
 )
-from legged_casters.deploy.standup import StandUp, StandUpCfg
+from legged_casters.deploy.standup import Righting, RightingCfg, StandUp, StandUpCfg
 
 MAX_STATE_RATE_HZ = 1000.0
 """The fastest robot state stream the bridge expects (a Go2 publishes LowState at 500 Hz)."""
@@ -86,6 +89,7 @@ class BridgeConfig:
     standup: str = "fold"  # "fold": legged_casters.deploy.standup; "linear": a ramp to the default pose
     standup_time: float = 2.0  # s: the fold stand-up's lift, or the whole linear ramp
     max_tilt_deg: float = 45.0  # RUNNING with the trunk tilted more than this: FALLEN (0: off)
+    righting: bool = True  # fold stand-up: first roll a robot lying on its back or side onto its belly
     max_state_age: float | None = None  # s; None: 1.5 control periods
     damping_kd: float = 1.0
     operator_timeout: float = 1.0  # s without operator messages -> zero velocity command; 0: never
@@ -198,9 +202,17 @@ class Bridge:
             if config.standup == "fold"
             else None
         )
+        self.righting = (
+            Righting(meta.joint_names, RightingCfg(), meta.joint_pos_limits)
+            if self.folding is not None and config.righting
+            else None
+        )
+        self.righting_side: float | None = None  # while righting: +1 left side down, -1 right side down
+        self.standup_tries = 0
         self.heading_ref: float | None = None
         """Heading hold: the yaw (rad) latched when the operator last asked to move without turning."""
         self.transitions: list[tuple[float, P.BridgeState, P.Fault]] = []
+        self.notes: list[str] = []  # events inside a state (righting tries), for the CLI to print
         self.fault_detail = ""
         """What tripped the last stale-state fault, in words (printed with the transition)."""
 
@@ -317,6 +329,34 @@ class Bridge:
             self.next_stamp = None
             self.rate.reset()
 
+    def _retry_righting(self, msg: P.RobotState, gravity: np.ndarray, where: str) -> bool:
+        """One more stand-up try, righting from the pose in `msg`; after `max_tries` tries,
+        DAMPING with fault FALLEN instead (returns False)."""
+        self.standup_tries += 1
+        if self.standup_tries >= self.righting.cfg.max_tries:
+            self.fault_detail = (
+                f"trunk tilted {tilt_deg(msg.quat):.0f} deg {where}, after {self.standup_tries} stand-up tries"
+            )
+            self._enter(P.BridgeState.DAMPING, P.Fault.FALLEN)
+            return False
+        self.standup_from, self.standup_step = np.asarray(msg.q, np.float64), 0
+        self._start_righting(gravity, force=True)
+        return True
+
+    def _start_righting(self, gravity: np.ndarray, force: bool = False) -> bool:
+        """Start righting from the pose in `standup_from` if the trunk is tilted past the
+        start limit or `force` (and righting is on); return whether it started."""
+        needed = self.righting is not None and (force or self.righting.needed(gravity))
+        self.righting_side = float(Righting.side_down(gravity)) if needed else None
+        if needed:
+            tilt = math.degrees(math.acos(max(-1.0, min(1.0, -float(gravity[2])))))
+            side = "left" if self.righting_side > 0 else "right"
+            self.notes.append(
+                f"STANDUP: righting, try {self.standup_tries + 1} of {self.righting.cfg.max_tries} (trunk tilted "
+                f"{tilt:.0f} deg, {side} side down)"
+            )
+        return needed
+
     def _due(self, stamp_ns: int) -> bool:
         """Is a state with this robot timestamp the one for the next control step?"""
         if self.next_stamp is None:
@@ -338,13 +378,38 @@ class Bridge:
             self.standup_from = np.asarray(msg.q, np.float64)
             self.standup_step = 0
             self.last_actions[:] = 0.0
+            self.standup_tries = 0
+            self._start_righting(projected_gravity(msg.quat))
             self._enter(P.BridgeState.STANDUP)
             self.next_stamp = msg.header.stamp_ns + int(round(self.dt * 1e9))
         if self.state is P.BridgeState.STANDUP:
             self.standup_step += 1
+            gravity = projected_gravity(msg.quat)
+            if (
+                self.righting is not None
+                and self.righting_side is None
+                and self.righting.needed(gravity, self.righting.cfg.abort_tilt_deg)
+            ):  # the fold tipped the robot over: right it again from where it lies
+                if not self._retry_righting(msg, gravity, "during the fold"):
+                    return
+                self.standup_step = 1
+            if self.righting_side is not None:
+                t = self.standup_step * self.dt
+                q = self.righting.targets(t, self.standup_from, self.righting_side)
+                if t >= self.righting.duration:  # judge the tilt: the fold, or another try, starts from here
+                    if self.righting.needed(gravity):
+                        if not self._retry_righting(msg, gravity, "after righting"):
+                            return
+                    else:
+                        self.righting_side = None
+                        self.standup_from, self.standup_step = np.asarray(msg.q, np.float64), 0
+                q = np.where(self.position, q, msg.q)
+                self._send_command(P.CommandMode.STANDUP, self._clip_q(q), self.kp, self.kd, seq)
+                self.rate.step(now)
+                return
             if self.folding is not None:
                 t = self.standup_step * self.dt
-                q = self.folding.targets(t, self.standup_from, projected_gravity(msg.quat))
+                q = self.folding.targets(t, self.standup_from, gravity)
                 done = t >= self.folding.duration
             else:
                 n = max(1, int(round(self.cfg.standup_time / self.dt)))
@@ -355,6 +420,10 @@ class Bridge:
             q = np.where(self.position, q, msg.q)
             self._send_command(P.CommandMode.STANDUP, self._clip_q(q), self.kp, self.kd, seq)
             self.rate.step(now)
+            if done and self.righting is not None and self.righting.needed(gravity, self.righting.cfg.stood_tilt_deg):
+                # the fold ended with the robot still lying tilted (e.g. on its side): no policy, right it again
+                self._retry_righting(msg, gravity, "after the fold")
+                return
             if done:
                 self._enter(P.BridgeState.RUNNING)
                 self.running_steps = 0  # the policy's gait clock starts with the policy
@@ -541,6 +610,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--standup-time", type=float, default=2.0, help="s: the fold stand-up's lift, or the linear ramp")
     p.add_argument(
+        "--no-righting",
+        action="store_true",
+        help="fold stand-up without the righting keyframes that first roll a robot lying on its back or side "
+        "(tilted more than 40 deg) onto its belly",
+    )
+    p.add_argument(
         "--max-tilt-deg",
         type=float,
         default=45.0,
@@ -600,6 +675,14 @@ def _print_transitions(bridge: Bridge, seen: int) -> int:
     return len(changes)
 
 
+def _print_notes(bridge: Bridge, seen: int) -> int:
+    """Print the bridge's notes since `seen` (e.g. each righting try); returns the new count."""
+    notes = list(bridge.notes)
+    for note in notes[seen:]:
+        print(f"bridge: {note}", flush=True)
+    return len(notes)
+
+
 NO_STATE_HINT_S = 5.0
 """Seconds without any robot state after which the bridge says what to check."""
 
@@ -620,6 +703,7 @@ def main(argv: list[str] | None = None) -> int:
             backend=args.backend,
             standup=args.standup,
             standup_time=args.standup_time,
+            righting=not args.no_righting,
             max_tilt_deg=args.max_tilt_deg,
             max_state_age=None if args.max_state_age_ms is None else args.max_state_age_ms / 1e3,
             damping_kd=args.damping_kd,
@@ -655,10 +739,11 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.monotonic()
         t_end = t0 + args.duration if args.duration > 0 else float("inf")
         warned = False
-        seen, next_summary = 0, t0 + args.summary_every
+        seen, noted, next_summary = 0, 0, t0 + args.summary_every
         while time.monotonic() < t_end:
             time.sleep(min(0.2, max(0.0, t_end - time.monotonic())))
             seen = _print_transitions(zb.bridge, seen)
+            noted = _print_notes(zb.bridge, noted)
             if args.summary_every > 0 and time.monotonic() >= next_summary:
                 next_summary += args.summary_every
                 print(f"bridge: {status_line(zb.bridge.status())}", flush=True)

@@ -22,6 +22,15 @@ legs on the low side push, legs on the high side give way, so the trunk rises le
 and every hip turns by ``-hip_roll_gain * g_y``, which rolls a robot that lies on its
 side back onto its feet. Measured with ``scripts/standup_check.py``.
 
+**Righting** (`Righting`, before the fold): a robot that fell lies on its back or its
+side, where folding and lifting only push the trunk along the floor. When the trunk is
+tilted more than ``RightingCfg.start_tilt_deg`` from upright, the legs first move
+through a few keyframes (``RightingCfg.keyframes``), given for the legs on the lower
+side and on the upper side of the lying trunk and mirrored left/right by which side is
+down (projected gravity's y component at the start), which rolls the trunk onto its
+belly; the fold stand-up then starts from the pose the robot is in. The keyframes were
+found by a search over simulated falls (``scripts/righting_search.py``).
+
 Driving-wheel joints (velocity control) are not moved: the bridge holds them still.
 """
 
@@ -54,6 +63,122 @@ class StandUpCfg:
     @property
     def duration(self) -> float:
         return self.fold_time + self.tuck_time + self.lift_time
+
+
+RIGHTING_VALUES = ("hip_out", "thigh_front", "thigh_rear", "calf")
+"""What each half of a righting keyframe gives, per leg group: the hip's turn away from the
+body (rad; positive moves the foot outwards), the front legs' thigh, the rear legs' thigh
+and the calf (rad, the joints' own angles)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class RightingCfg:
+    start_tilt_deg: float = 40.0
+    """Righting runs first when the trunk is tilted more than this (deg) from upright."""
+    stood_tilt_deg: float = 15.0
+    """A fold stand-up that ends with the trunk tilted more than this (deg) did not stand
+    the robot up (it lay on its side, propped on its legs): righting runs, then the fold
+    again (one more try)."""
+    abort_tilt_deg: float = 60.0
+    """A fold stand-up that tips the trunk past this (deg) stops, and righting starts again
+    from where the robot lies (one more try)."""
+    keyframes: tuple[tuple[float, ...], ...] = (
+        (0.368, 1.059, 4.273, -2.52, 0.988, 3.366, 2.371, -2.591),
+        (-0.131, 3.071, 4.459, -1.426, 0.067, 3.265, 3.605, -2.185),
+        (-0.974, 2.417, 4.149, -1.653, 0.538, -1.468, 0.566, -1.583),
+    )
+    """Each keyframe: `RIGHTING_VALUES` for the legs on the lower side, then for the legs on
+    the upper side (8 values)."""
+    durations: tuple[float, ...] = (0.85, 0.955, 0.995)
+    """s: the move to each keyframe (linear in joint space, from the previous one)."""
+    settle_time: float = 0.5
+    """s: the last keyframe is held this long before the tilt is judged."""
+    max_tries: int = 3
+    """Stand-up tries (a righting, or a fold that left the trunk tilted past the start
+    limit or tipped it past the abort limit) before the stand-up gives up: DAMPING with
+    fault FALLEN."""
+
+    def __post_init__(self):
+        if len(self.keyframes) != len(self.durations) or not self.keyframes:
+            raise ValueError("righting needs one duration per keyframe, and at least one keyframe")
+        if any(len(k) != 2 * len(RIGHTING_VALUES) for k in self.keyframes):
+            raise ValueError(f"each righting keyframe has {2 * len(RIGHTING_VALUES)} values")
+        if min(self.durations) <= 0 or self.settle_time < 0 or self.max_tries < 1:
+            raise ValueError("righting durations must be > 0, settle_time >= 0 and max_tries >= 1")
+        if not 0 < self.stood_tilt_deg <= self.start_tilt_deg <= self.abort_tilt_deg <= 180:
+            raise ValueError("righting needs 0 < stood_tilt_deg <= start_tilt_deg <= abort_tilt_deg <= 180")
+
+    @property
+    def duration(self) -> float:
+        return sum(self.durations) + self.settle_time
+
+
+class Righting:
+    """Joint targets that roll a robot with the Go2's legs from its back or side onto its
+    belly. Vectorised: `start` may be (..., n) and `side` (...) for a batch of robots."""
+
+    def __init__(self, joint_names: list[str], cfg: RightingCfg, limits=None):
+        """`limits` (n, 2): joint position limits (rad) each keyframe is clipped to."""
+        self.cfg = cfg
+        n = len(joint_names)
+        self.legs = np.zeros(n, bool)
+        self.left = np.zeros(n)
+        column = np.zeros(n, int)  # which of RIGHTING_VALUES drives each joint
+        for i, name in enumerate(joint_names):
+            try:
+                leg, kind = go2.split_joint_name(name)
+            except ValueError:
+                continue
+            if leg not in go2.LEGS or kind not in ("hip", "thigh", "calf"):
+                continue
+            front, self.left[i] = go2.leg_signs(leg)
+            self.legs[i] = True
+            column[i] = {"hip": 0, "thigh": 1 if front > 0 else 2, "calf": 3}[kind]
+        if self.legs.sum() != 12:
+            raise ValueError(f"righting needs the 12 leg joints of a Go2, got {int(self.legs.sum())}")
+        self.hip = self.legs & (column == 0)
+        k = np.asarray(cfg.keyframes, np.float64).reshape(len(cfg.keyframes), 2, len(RIGHTING_VALUES))
+        self.lower = k[:, 0, column]  # (keyframes, n): each joint's target if its leg is on the lower side
+        self.upper = k[:, 1, column]  # ... and if it is on the upper side
+        lim = np.asarray(limits, np.float64) if limits is not None else np.tile([-np.inf, np.inf], (n, 1))
+        if lim.shape != (n, 2):
+            raise ValueError(f"righting limits: expected ({n}, 2), got {lim.shape}")
+        self.lo, self.hi = lim[:, 0], lim[:, 1]
+        self.starts = np.concatenate([[0.0], np.cumsum(cfg.durations)])
+
+    @property
+    def duration(self) -> float:
+        return self.cfg.duration
+
+    def needed(self, gravity, limit_deg: float | None = None) -> bool:
+        """Is the trunk, with projected gravity `gravity` (3,), tilted past `limit_deg`
+        (default: the start limit)?"""
+        limit = self.cfg.start_tilt_deg if limit_deg is None else limit_deg
+        return float(-gravity[2]) < np.cos(np.radians(limit))
+
+    @staticmethod
+    def side_down(gravity) -> np.ndarray:
+        """+1 where the trunk's left side is the lower one (gravity along +y), else -1."""
+        return np.where(np.asarray(gravity)[..., 1] >= 0.0, 1.0, -1.0)
+
+    def pose(self, k: int, side) -> np.ndarray:
+        """Keyframe k's joint targets for robots with `side` (...) down."""
+        side = np.asarray(side, np.float64)[..., None]
+        lower = self.left * side > 0  # the joint's leg is on the lower side
+        q = np.where(lower, self.lower[k], self.upper[k])
+        q = np.where(self.hip, q * self.left, q)  # hip_out -> the hip's own sign (left legs +, right legs -)
+        return np.clip(q, self.lo, self.hi)
+
+    def targets(self, t, start, side) -> np.ndarray:
+        """Joint targets at time t (s, scalar or (...)) since righting began from the
+        measured pose `start` (..., n) with `side` (...) down (see `side_down`)."""
+        start = np.asarray(start, np.float64)
+        t = np.asarray(t, np.float64)[..., None]
+        q = start
+        for k in range(len(self.cfg.keyframes)):
+            a = np.clip((t - self.starts[k]) / self.cfg.durations[k], 0.0, 1.0)
+            q = q + a * (self.pose(k, side) - q)
+        return np.where(self.legs, q, start)
 
 
 class StandUp:
