@@ -98,7 +98,7 @@ class Chain:
     """SimRobot + Bridge in one process, stepped on the robot's 2 ms clock."""
 
     def __init__(self, meta, runner, standup: str, qpos=None, qvel=None):
-        self.robot = SimRobot(self._from_robot, startup="damping", watchdog=1e9)
+        self.robot = SimRobot(self._from_robot, robot=meta.robot, startup="damping", watchdog=1e9)
         self.bridge: Bridge | None = None
         self.meta, self.runner, self.standup = meta, runner, standup
         m, d = self.robot.model, self.robot.data

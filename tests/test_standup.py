@@ -86,6 +86,19 @@ def _on_its_back(check, meta, runner, **bridge):
     return chain
 
 
+def test_a_wheel_robot_on_its_back_is_righted_by_the_same_keyframes(check):
+    """The keyframes were searched on the caster robot; the driving-wheel Go2's legs are the
+    same, and the bridge rights it and hands it to its policy the same way."""
+    meta = load_meta(ROOT / "resources" / "policies" / "go2_wheel_flat")
+    chain = _on_its_back(check, meta, PolicyRunner(meta, "onnx"))
+    for _ in range(120):
+        chain.run(0.1)
+        if chain.bridge.state is not P.BridgeState.STANDUP:
+            break
+    chain.run(1.0)
+    assert chain.bridge.state is P.BridgeState.RUNNING and chain.upright() and len(chain.bridge.notes) == 1
+
+
 def test_a_robot_on_its_back_is_righted_stands_up_and_skates(check, shipped):
     """The righting keyframes roll it onto its belly, the fold stands it up, the policy
     skates; without righting the fold cannot, and the bridge damps it as fallen."""
