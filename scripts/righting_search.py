@@ -1,6 +1,6 @@
 """Search the bridge's righting keyframes (legged_casters.deploy.standup.RightingCfg) over simulated falls.
 
-    python scripts/righting_search.py                   # 40 falls to search on, 40 to check on; ~20 min on 2 cores
+    python scripts/righting_search.py                   # 40 falls to search on, 40 to check on; ~15 min on 2 cores
     python scripts/righting_search.py --falls 10 --check-falls 10 --generations 3 --popsize 8   # a quick try
 
 Falls: `scripts/standup_check.py`'s (the shipped caster policy skating at vx 0.5 through the

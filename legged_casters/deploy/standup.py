@@ -28,8 +28,10 @@ tilted more than ``RightingCfg.start_tilt_deg`` from upright, the legs first mov
 through a few keyframes (``RightingCfg.keyframes``), given for the legs on the lower
 side and on the upper side of the lying trunk and mirrored left/right by which side is
 down (projected gravity's y component at the start), which rolls the trunk onto its
-belly; the fold stand-up then starts from the pose the robot is in. The keyframes were
-found by a search over simulated falls (``scripts/righting_search.py``).
+belly; the fold stand-up then starts from the pose the robot is in. The bridge watches
+the fold as well: one that tips the trunk past ``abort_tilt_deg`` or ends with it tilted
+more than ``stood_tilt_deg`` rights the robot again, up to ``max_tries`` tries in all.
+The keyframes were found by a search over simulated falls (``scripts/righting_search.py``).
 
 Driving-wheel joints (velocity control) are not moved: the bridge holds them still.
 """
@@ -94,9 +96,9 @@ class RightingCfg:
     settle_time: float = 0.5
     """s: the last keyframe is held this long before the tilt is judged."""
     max_tries: int = 3
-    """Stand-up tries (a righting, or a fold that left the trunk tilted past the start
-    limit or tipped it past the abort limit) before the stand-up gives up: DAMPING with
-    fault FALLEN."""
+    """Stand-up tries (a righting that left the trunk tilted past `start_tilt_deg`, or a
+    fold that ended it tilted past `stood_tilt_deg` or tipped it past `abort_tilt_deg`)
+    before the stand-up gives up: DAMPING with fault FALLEN."""
 
     def __post_init__(self):
         if len(self.keyframes) != len(self.durations) or not self.keyframes:
