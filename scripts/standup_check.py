@@ -211,11 +211,12 @@ def fall_recovery(args, meta, runner, rng) -> tuple[int, list[str]]:
             print(f"[standup_check] {notes[-1]}", flush=True)
             continue
         lying = chain.tilt()
-        chain.operate(0.0, reset=True)
         b = chain.bridge
-        longest = (b.folding.duration if b.folding else b.cfg.standup_time) + (
-            b.righting.duration * b.righting.cfg.max_tries if b.righting else 0.0
-        )
+        notes_before = len(b.notes)
+        chain.operate(0.0, reset=True)
+        fold = b.folding.duration if b.folding else b.cfg.standup_time
+        # every try may be a righting and a fold that fails at its very end
+        longest = (b.righting.duration + fold) * b.righting.cfg.max_tries if b.righting else fold
         standup_s = 0.0
         while b.state is not P.BridgeState.RUNNING and b.fault is P.Fault.NONE and standup_s < longest + 1.0:
             chain.run(0.1)
@@ -229,7 +230,8 @@ def fall_recovery(args, meta, runner, rng) -> tuple[int, list[str]]:
         ok += good
         notes.append(
             f"fall {i}: pushed with {force:.0f} N, lying tilted {lying:.0f} deg, "
-            f"after reset {chain.bridge.state.name} ({len(b.notes)} righting tries, stand-up {standup_s:.1f} s)"
+            f"after reset {chain.bridge.state.name} ({len(b.notes) - notes_before} righting tries, stand-up "
+            f"{standup_s:.1f} s)"
             + (f" ({chain.bridge.fault.name}: {chain.bridge.fault_detail})" if chain.bridge.fault else "")
             + f", trunk at {chain.robot.data.qpos[2]:.3f} m (stand {chain.stand_z:.3f}), tilt {chain.tilt():.0f} deg, "
             f"{dist:.2f} m in 5 s at vx 0.5: " + ("ok" if good else "FAILED")

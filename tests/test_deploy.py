@@ -456,7 +456,7 @@ def test_righting_keyframes_are_mirrored_by_the_side_that_lies_down():
     hips turn outwards by the same angle on both sides; every target is clipped to the
     joint limits and the motion ends on the last keyframe."""
     names = list(go2.ACTUATED_JOINTS)
-    limits = np.array([[-1.0472, 1.0472], [-1.5708, 3.4907], [-2.7227, -0.83776]] * 4)
+    limits = np.array(go2.joint_ranges())  # the rear thighs' range differs from the front ones
     cfg = RightingCfg()
     r = Righting(names, cfg, limits)
     start = np.asarray(go2.default_joint_positions())
@@ -468,7 +468,7 @@ def test_righting_keyframes_are_mirrored_by_the_side_that_lies_down():
     assert np.allclose(left_down[:, 0], -right_down[mirror, 0])
     last = np.array(cfg.keyframes[-1])
     expect_fl = np.clip([last[0], last[1], last[3]], limits[:3, 0], limits[:3, 1])  # FL on the lower side
-    expect_rr = np.clip([-last[4], last[6], last[7]], limits[:3, 0], limits[:3, 1])  # RR: upper side, hip mirrored
+    expect_rr = np.clip([-last[4], last[6], last[7]], limits[9:, 0], limits[9:, 1])  # RR: upper side, hip mirrored
     assert np.allclose(left_down[0], expect_fl) and np.allclose(left_down[3], expect_rr)
     assert np.allclose(r.targets(0.0, start, 1.0), start)  # starts from the measured pose
     batch = r.targets(np.array([0.3, end]), np.stack([start, start]), np.array([1.0, -1.0]))
@@ -534,6 +534,13 @@ def test_a_robot_on_its_back_is_righted_first_and_damped_after_the_last_try(tmp_
     k = _feed(b4, sender, fold_steps, k, tilted_30)
     assert b4.state is P.BridgeState.STANDUP and b4.notes == [
         "STANDUP: righting, try 2 of 3 (trunk tilted 30 deg, right side down)"]  # fmt: skip
+    # still lying tilted 30 deg: each righting hands over to a fold (under 40 deg), which ends
+    # tilted again; the third failed try damps it
+    k = _feed(b4, sender, 2 * (per_try + fold_steps) - 1, k, tilted_30)
+    assert b4.state is P.BridgeState.STANDUP and len(b4.notes) == 2
+    k = _feed(b4, sender, 1, k, tilted_30)
+    assert b4.state is P.BridgeState.DAMPING and b4.fault is P.Fault.FALLEN and len(b4.notes) == 2
+    assert b4.fault_detail == "trunk tilted 30 deg after the fold, after 3 stand-up tries"
     b5 = _bridge(tmp_path, Recorder(), standup="fold", max_state_age=1e3)
     k = _feed(b5, sender, 5, k, upright)
     k = _feed(b5, sender, 1, k, tilted_70)

@@ -63,6 +63,7 @@ from legged_casters.deploy.policy import (
     PolicyFormatError,
     PolicyMeta,
     PolicyRunner,
+    gravity_tilt_deg,
     load_meta,
     projected_gravity,
     tilt_deg,
@@ -349,11 +350,10 @@ class Bridge:
         needed = self.righting is not None and (force or self.righting.needed(gravity))
         self.righting_side = float(Righting.side_down(gravity)) if needed else None
         if needed:
-            tilt = math.degrees(math.acos(max(-1.0, min(1.0, -float(gravity[2])))))
             side = "left" if self.righting_side > 0 else "right"
             self.notes.append(
                 f"STANDUP: righting, try {self.standup_tries + 1} of {self.righting.cfg.max_tries} (trunk tilted "
-                f"{tilt:.0f} deg, {side} side down)"
+                f"{gravity_tilt_deg(gravity):.0f} deg, {side} side down)"
             )
         return needed
 
@@ -612,8 +612,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--no-righting",
         action="store_true",
-        help="fold stand-up without the righting keyframes that first roll a robot lying on its back or side "
-        "(tilted more than 40 deg) onto its belly",
+        help="fold stand-up without righting: no keyframes that first roll a robot lying on its back or side "
+        "(tilted more than 40 deg) onto its belly, and no watch of the fold (no retries; the policy starts "
+        "when the fold ends, however the trunk lies)",
     )
     p.add_argument(
         "--max-tilt-deg",

@@ -298,16 +298,24 @@ class PolicyRunner:
 
 
 def projected_gravity(quat_wxyz) -> np.ndarray:
-    """World gravity direction (0, 0, -1) in the frame of the unit quaternion (w, x, y, z)."""
-    w, x, y, z = (float(v) for v in quat_wxyz)
+    """World gravity direction (0, 0, -1) in the frame of the unit quaternion (w, x, y, z);
+    (..., 4) quaternions give (..., 3)."""
+    w, x, y, z = np.moveaxis(np.asarray(quat_wxyz, np.float64), -1, 0)
     # third row of R^T, negated: R^T (0, 0, -1) = -(R[2, 0], R[2, 1], R[2, 2])
-    return -np.array([2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)])
+    return -np.stack([2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)], axis=-1)
 
 
-def tilt_deg(quat_wxyz) -> float:
-    """Degrees between the frame's z axis and the vertical (0: upright, 180: upside down)."""
-    upright = -float(projected_gravity(quat_wxyz)[2])
-    return math.degrees(math.acos(max(-1.0, min(1.0, upright))))
+def gravity_tilt_deg(gravity):
+    """Degrees between the frame's z axis and the vertical, from its projected gravity
+    (..., 3) (0: upright, 180: upside down); a float for one frame."""
+    tilt = np.degrees(np.arccos(np.clip(-np.asarray(gravity, np.float64)[..., 2], -1.0, 1.0)))
+    return float(tilt) if tilt.ndim == 0 else tilt
+
+
+def tilt_deg(quat_wxyz):
+    """Degrees between the frame's z axis and the vertical (0: upright, 180: upside down);
+    a float for one quaternion, an array for (..., 4)."""
+    return gravity_tilt_deg(projected_gravity(quat_wxyz))
 
 
 def yaw_of(quat_wxyz) -> float:

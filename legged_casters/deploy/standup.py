@@ -67,6 +67,30 @@ class StandUpCfg:
         return self.fold_time + self.tuck_time + self.lift_time
 
 
+def leg_joints(joint_names: list[str], what: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(is a leg joint, kind: 0 hip / 1 thigh / 2 calf / -1 other, front sign, left sign) per
+    joint, for names like FL_hip_joint; `what` names the caller in the error raised when the
+    12 leg joints of a Go2 are not all there."""
+    n = len(joint_names)
+    legs, kind, front, left = np.zeros(n, bool), np.full(n, -1), np.zeros(n), np.zeros(n)
+    kinds = {"hip": 0, "thigh": 1, "calf": 2}
+    for i, name in enumerate(joint_names):
+        try:
+            leg, k = go2.split_joint_name(name)
+        except ValueError:
+            continue
+        if k not in kinds or leg not in go2.LEGS:
+            continue
+        legs[i], kind[i] = True, kinds[k]
+        front[i], left[i] = go2.leg_signs(leg)
+    if legs.sum() != 12:
+        raise ValueError(
+            f"{what} needs the 12 leg joints of a Go2 (names like FL_hip_joint); the policy has "
+            f"{int(legs.sum())} of them in {joint_names}: use the linear stand-up (--standup linear)"
+        )
+    return legs, kind, front, left
+
+
 RIGHTING_VALUES = ("hip_out", "thigh_front", "thigh_rear", "calf")
 """What each half of a righting keyframe gives, per leg group: the hip's turn away from the
 body (rad; positive moves the foot outwards), the front legs' thigh, the rear legs' thigh
@@ -123,22 +147,10 @@ class Righting:
         """`limits` (n, 2): joint position limits (rad) each keyframe is clipped to."""
         self.cfg = cfg
         n = len(joint_names)
-        self.legs = np.zeros(n, bool)
-        self.left = np.zeros(n)
-        column = np.zeros(n, int)  # which of RIGHTING_VALUES drives each joint
-        for i, name in enumerate(joint_names):
-            try:
-                leg, kind = go2.split_joint_name(name)
-            except ValueError:
-                continue
-            if leg not in go2.LEGS or kind not in ("hip", "thigh", "calf"):
-                continue
-            front, self.left[i] = go2.leg_signs(leg)
-            self.legs[i] = True
-            column[i] = {"hip": 0, "thigh": 1 if front > 0 else 2, "calf": 3}[kind]
-        if self.legs.sum() != 12:
-            raise ValueError(f"righting needs the 12 leg joints of a Go2, got {int(self.legs.sum())}")
-        self.hip = self.legs & (column == 0)
+        self.legs, kind, front, self.left = leg_joints(joint_names, "righting")
+        # which of RIGHTING_VALUES drives each joint: hip 0, thigh 1 (front legs) or 2 (rear), calf 3
+        column = np.select([kind == 0, (kind == 1) & (front > 0), kind == 1, kind == 2], [0, 1, 2, 3], 0)
+        self.hip = self.legs & (kind == 0)
         k = np.asarray(cfg.keyframes, np.float64).reshape(len(cfg.keyframes), 2, len(RIGHTING_VALUES))
         self.lower = k[:, 0, column]  # (keyframes, n): each joint's target if its leg is on the lower side
         self.upper = k[:, 1, column]  # ... and if it is on the upper side
@@ -189,27 +201,8 @@ class StandUp:
 
     def __init__(self, joint_names: list[str], default: np.ndarray, cfg: StandUpCfg = StandUpCfg()):
         self.cfg = cfg
-        n = len(joint_names)
         self.default = np.asarray(default, np.float64).copy()
-        self.legs = np.zeros(n, bool)
-        self.kind = np.full(n, -1)
-        front, left = np.zeros(n), np.zeros(n)
-        kinds = {"hip": 0, "thigh": 1, "calf": 2}
-        for i, name in enumerate(joint_names):
-            try:
-                leg, kind = go2.split_joint_name(name)
-            except ValueError:
-                continue
-            if kind not in kinds or leg not in go2.LEGS:
-                continue
-            self.legs[i], self.kind[i] = True, kinds[kind]
-            front[i], left[i] = go2.leg_signs(leg)
-        if self.legs.sum() != 12:
-            raise ValueError(
-                f"the folding stand-up needs the 12 leg joints of a Go2 (names like FL_hip_joint); the policy has "
-                f"{int(self.legs.sum())} of them in {joint_names}: use the linear stand-up (--standup linear)"
-            )
-        self.front, self.left = front, left
+        self.legs, self.kind, self.front, self.left = leg_joints(joint_names, "the folding stand-up")
         self.tuck = np.where(self.legs, np.asarray(cfg.tuck)[np.clip(self.kind, 0, 2)], self.default)
         self.calf = self.kind == 2
         self.hip = self.kind == 0
