@@ -12,6 +12,9 @@ class PolicyCfg:
     critic_hidden_dims: tuple[int, ...] = (512, 256, 128)
     activation: Literal["elu", "relu", "tanh", "selu", "gelu", "lrelu"] = "elu"
     init_noise_std: float = field(default=1.0, metadata={"min": 0.0})
+    learn_noise_std: bool = True
+    """Whether PPO may change the exploration std (False: it stays init_noise_std). On casters
+    the noise itself propels the robot, so PPO raises a learnt std (docs/tasks.md, run 40)."""
     obs_normalization: bool = True
     critic_history: bool = True
     """Whether the critic's MLP reads the actor's proprioceptive history (it has the privileged state)."""
@@ -84,6 +87,7 @@ class TrainCfg:
                 "distribution_cfg": {
                     "class_name": "rsl_rl.modules.distribution.GaussianDistribution",
                     "init_std": p.init_noise_std,
+                    "learn_std": p.learn_noise_std,
                 },
             },
             "critic": {

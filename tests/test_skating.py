@@ -253,6 +253,27 @@ def test_ppo_learns_a_residual_around_the_prior(tmp_path):
     e.close()
 
 
+def test_a_fixed_exploration_std_stays_put_while_ppo_learns(tmp_path):
+    """policy.learn_noise_std false: the std is not a trainable parameter and stays at
+    init_noise_std through PPO updates (the default learns it)."""
+    e = registry.make_env(TASK, CPU, num_envs=4)
+    stds = {}
+    for learn in (True, False):
+        train_cfg = copy.deepcopy(registry.get_task(TASK).train_cfg)
+        train_cfg.policy.learn_noise_std = learn
+        cfg = train_cfg.for_env(e)
+        cfg["num_steps_per_env"] = 8
+        runner = OnPolicyRunner(e, cfg, log_dir=str(tmp_path / str(learn)), device="cpu")
+        runner.learn(num_learning_iterations=2)
+        std = runner.alg.actor.distribution.std.detach()
+        stds[learn] = std
+        assert runner.alg.actor.distribution.std_param.requires_grad is learn
+    init_std = registry.get_task(TASK).train_cfg.policy.init_noise_std
+    assert torch.allclose(stds[False], torch.full_like(stds[False], init_std))
+    assert not torch.allclose(stds[True], torch.full_like(stds[True], init_std))
+    e.close()
+
+
 def test_export_carries_the_prior_and_the_bridge_rebuilds_the_clock(tmp_path):
     e = registry.make_env(TASK, CPU, num_envs=2)
     actor = export.build_actor(e, registry.get_task(TASK).train_cfg)
