@@ -14,7 +14,7 @@ class PolicyCfg:
     init_noise_std: float = field(default=1.0, metadata={"min": 0.0})
     learn_noise_std: bool = True
     """Whether PPO may change the exploration std (False: it stays init_noise_std). On casters
-    the noise itself propels the robot, so PPO raises a learnt std (docs/tasks.md, run 40)."""
+    the noise itself propels the robot, so PPO raises a learnt std (docs/tasks.md, runs 40-42)."""
     obs_normalization: bool = True
     critic_history: bool = True
     """Whether the critic's MLP reads the actor's proprioceptive history (it has the privileged state)."""
