@@ -336,7 +336,7 @@ class Bridge:
         self.standup_tries += 1
         if self.standup_tries >= self.righting.cfg.max_tries:
             self.fault_detail = (
-                f"trunk tilted {tilt_deg(msg.quat):.0f} deg {where}, after {self.standup_tries} stand-up tries"
+                f"trunk tilted {gravity_tilt_deg(gravity):.0f} deg {where}, after {self.standup_tries} stand-up tries"
             )
             self._enter(P.BridgeState.DAMPING, P.Fault.FALLEN)
             return False
@@ -344,9 +344,9 @@ class Bridge:
         self._start_righting(gravity, force=True)
         return True
 
-    def _start_righting(self, gravity: np.ndarray, force: bool = False) -> bool:
+    def _start_righting(self, gravity: np.ndarray, force: bool = False) -> None:
         """Start righting from the pose in `standup_from` if the trunk is tilted past the
-        start limit or `force` (and righting is on); return whether it started."""
+        start limit or `force` (and righting is on); else `righting_side` is None."""
         needed = self.righting is not None and (force or self.righting.needed(gravity))
         self.righting_side = float(Righting.side_down(gravity)) if needed else None
         if needed:
@@ -355,7 +355,6 @@ class Bridge:
                 f"STANDUP: righting, try {self.standup_tries + 1} of {self.righting.cfg.max_tries} (trunk tilted "
                 f"{gravity_tilt_deg(gravity):.0f} deg, {side} side down)"
             )
-        return needed
 
     def _due(self, stamp_ns: int) -> bool:
         """Is a state with this robot timestamp the one for the next control step?"""
