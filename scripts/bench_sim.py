@@ -16,6 +16,7 @@ i.e. world-steps/s divided by decimation) and backend / ceiling.
 from __future__ import annotations
 
 import argparse
+import copy
 import os
 import sys
 import time
@@ -34,8 +35,15 @@ def _ints(text: str) -> list[int]:
     return [int(x) for x in text.split(",") if x]
 
 
-def ceiling(model: mujoco.MjModel, num_envs: int, nstep: int, min_time: float) -> float:
-    """Physics world-steps per second of a bare multi-threaded rollout."""
+def ceiling(model: mujoco.MjModel, num_envs: int, nstep: int, min_time: float, *, call_pattern: bool = False) -> float:
+    """Physics world-steps per second of a bare multi-threaded rollout of the stand keyframe.
+
+    `call_pattern=True` makes the calls the CPU backend makes (legged_casters/sim/cpu.py):
+    one model copy per env, `nstep` steps per call, every substep's state and sensor
+    values written out, a warmstart passed in. The states stay the standing ones, so
+    what this adds to the plain ceiling is the cost of the way the env calls the
+    simulator, not of what its robots do.
+    """
     nthread = os.cpu_count() or 1
     data = [mujoco.MjData(model) for _ in range(nthread)]
     d0 = mujoco.MjData(model)
@@ -44,12 +52,21 @@ def ceiling(model: mujoco.MjModel, num_envs: int, nstep: int, min_time: float) -
     mujoco.mj_getState(model, d0, state0, mujoco.mjtState.mjSTATE_FULLPHYSICS)
     initial = np.tile(state0, (num_envs, 1))
     control = np.tile(model.key_ctrl[0], (num_envs, nstep, 1))
-    models = [model] * num_envs
+    outputs = {}
+    if call_pattern:
+        models = [copy.copy(model) for _ in range(num_envs)]
+        outputs = {
+            "state": np.empty((num_envs, nstep, state0.size)),
+            "sensordata": np.empty((num_envs, nstep, model.nsensordata)),
+            "initial_warmstart": np.zeros((num_envs, model.nv)),
+        }
+    else:
+        models = [model] * num_envs
     with mujoco.rollout.Rollout(nthread=nthread) as pool:
         pool.rollout(models, data, initial[:, :], control[:, :1], nstep=1)  # warm the pool
         calls, t0 = 0, time.perf_counter()
         while calls == 0 or time.perf_counter() - t0 < min_time:
-            pool.rollout(models, data, initial, control, skip_checks=True, nstep=nstep)
+            pool.rollout(models, data, initial, control, skip_checks=True, nstep=nstep, **outputs)
             calls += 1
         elapsed = time.perf_counter() - t0
     return calls * num_envs * nstep / elapsed
