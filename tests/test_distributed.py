@@ -4,6 +4,7 @@ hard-codes nccl and cuda:LOCAL_RANK, runs through CheckpointingRunner's override
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -22,9 +23,18 @@ TINY = [
 ]  # fmt: skip
 
 
-def _launch(root: Path, out: Path, tag: str, *extra: str) -> str:
+CASTER = [
+    "--task", "caster_omni", "--num_envs", "4", "--device", "cpu", "--console", "line", "--eval_every", "0",
+    "--train-set", "num_steps_per_env=8",
+    "--train-set", "policy.actor_hidden_dims=[16]",
+    "--train-set", "policy.critic_hidden_dims=[16]",
+    "--train-set", "estimator.hidden_dims=[16]",
+]  # fmt: skip
+
+
+def _launch(root: Path, out: Path, tag: str, *extra: str, args: list[str] = TINY) -> str:
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nnodes=1", "--nproc_per_node=2"]
-    cmd += [str(REPO / "tests" / "distributed_rank.py"), *TINY, "--log_root", str(root), *extra]
+    cmd += [str(REPO / "tests" / "distributed_rank.py"), *args, "--log_root", str(root), *extra]
     env = {**os.environ, "DIST_TEST_OUT": str(out), "DIST_TEST_TAG": tag, "OMP_NUM_THREADS": "1"}
     env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")]))
     proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=240)
@@ -92,3 +102,72 @@ def test_resume_with_two_processes(runs):
     final = torch.load(run_dir / "model_3.pt", weights_only=True)["actor_state_dict"]
     assert _same(final, r0["after"])
     assert "resumed" in resumed and "stopped after iteration 3" in resumed
+
+
+def test_the_estimator_learns_from_both_ranks(tmp_path):
+    """caster_omni's actor carries a velocity estimator with its own Adam step after PPO's
+    (EstimatorPPO): its gradients are averaged too, or the ranks' estimators drift apart."""
+    root, out = tmp_path / "logs", tmp_path / "ranks"
+    out.mkdir()
+    _launch(root, out, "caster", "--max_iterations", "2", args=CASTER)
+    r0, r1 = (torch.load(out / f"rank{r}_caster.pt", weights_only=True) for r in (0, 1))
+    est = [k for k in r0["after"] if k.startswith("estimator.")]
+    assert est, sorted(r0["after"])
+    assert not all(torch.equal(r0["before"][k], r0["after"][k]) for k in est)  # the estimator learnt
+    assert _same(r0["after"], r1["after"])
+
+
+def test_procs_launches_one_pinned_process_per_core(tmp_path):
+    """`train.py --procs 2`: torchrun with two workers, each on its own core with half the
+    envs; rank 0 writes one run folder whose command.txt names the command typed."""
+    if len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("needs 2 usable cores")
+    cmd = [sys.executable, str(REPO / "train.py"), *TINY[:2], "--procs", "2", "--num_envs", "8", *TINY[4:]]
+    cmd += ["--log_root", str(tmp_path), "--max_iterations", "2"]
+    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=240)
+    log = proc.stdout + proc.stderr
+    assert proc.returncode == 0, log[-6000:]
+    assert "2 processes on" in log and "4 envs each" in log
+    cores = sorted(int(c) for c in re.findall(r"rank \d: CPU core (\d+), 1 torch thread", log))
+    assert len(cores) == 2 and cores[0] != cores[1], log[-3000:]
+    (run_dir,) = (tmp_path / TASK).iterdir()
+    assert (run_dir / "model_2.pt").exists()
+    assert "--procs 2" in (run_dir / "command.txt").read_text()
+    assert "num_envs: 4" in (run_dir / "env.yaml").read_text()  # per process
+    assert "processes: 2" in (run_dir / "run.yaml").read_text()
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--procs", "0"], "--procs must be at least 1"),
+        (["--procs", "64"], "one process per core"),
+        (["--procs", "2", "--num_envs", "5"], "does not split evenly into 2 processes"),
+    ],
+)
+def test_procs_bad_input(extra, message, capsys):
+    from legged_casters.tools import train
+
+    assert train.main(["--task", TASK, *extra]) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_procs_resume_keeps_the_runs_batch(tmp_path):
+    """--procs on --resume splits the run's own total (envs per process x processes), so a run
+    trained by one process and resumed by two keeps its 512 x 24 batch, and back."""
+    from legged_casters import registry
+    from legged_casters.tools import train
+
+    spec = registry.get_task("caster_omni")
+    run = tmp_path / "caster_omni" / "2026-01-01_00-00-00_x"
+    run.mkdir(parents=True)
+    (run / "env.yaml").write_text("num_envs: 256\n")
+    (run / "model_1.pt").write_bytes(b"")
+    args = train.build_parser().parse_args(["--task", "caster_omni", "--resume", "--log_root", str(tmp_path)])
+    assert train.total_envs(args, spec, None) == 256  # no run.yaml: one process
+    (run / "run.yaml").write_text("task: caster_omni\nprocesses: 2\n")
+    assert train.total_envs(args, spec, None) == 512
+    args = train.build_parser().parse_args(["--task", "caster_omni", "--num_envs", "64"])
+    assert train.total_envs(args, spec, None) == 64
+    args = train.build_parser().parse_args(["--task", "caster_omni"])
+    assert train.total_envs(args, spec, None) == 512

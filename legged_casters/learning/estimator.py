@@ -20,6 +20,7 @@ from __future__ import annotations
 import torch
 from rsl_rl.algorithms import PPO
 from rsl_rl.modules import MLP
+from rsl_rl.utils.utils import reduce_gradients_in_buckets
 
 TARGET_GROUP = "estimator_target"
 """Observation group holding the estimator's regression target (base_lin_vel, trunk frame, m/s)."""
@@ -86,6 +87,10 @@ class EstimatorPPO(PPO):
             loss = torch.nn.functional.mse_loss(actor.estimate(obs), obs[TARGET_GROUP])
             self.estimator_optimizer.zero_grad()
             loss.backward()
+            if self.is_multi_gpu:  # as PPO's own step: every process applies the averaged gradient
+                reduce_gradients_in_buckets(
+                    actor.estimator.parameters(), self.gpu_world_size, self.grad_reduce_bucket_mb
+                )
             self.estimator_optimizer.step()
             total += loss.item()
             count += 1

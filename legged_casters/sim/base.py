@@ -27,6 +27,7 @@ constraint regularisation) are not recomputed, on either backend.
 from __future__ import annotations
 
 import abc
+import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -48,6 +49,14 @@ RANDOMIZABLE_FIELDS: tuple[str, ...] = (
 BACKEND_KINDS: tuple[str, ...] = ("auto", "cpu", "warp")
 
 IndexLike = torch.Tensor | Sequence[int] | np.ndarray | slice | None
+
+
+def usable_cpus() -> int:
+    """CPU cores this process may run on: its affinity mask (taskset, a pinned rank of
+    `train.py --procs`), not every core of the machine as os.cpu_count() says."""
+    if hasattr(os, "sched_getaffinity"):
+        return max(1, len(os.sched_getaffinity(0)))
+    return os.cpu_count() or 1
 
 
 def physics_model(source: mujoco.MjModel | mujoco.MjSpec | str | Path) -> mujoco.MjModel:

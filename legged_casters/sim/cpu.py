@@ -24,7 +24,6 @@ tolerance from a different start).
 from __future__ import annotations
 
 import copy
-import os
 import warnings
 
 import mujoco
@@ -32,7 +31,7 @@ import mujoco.rollout
 import numpy as np
 import torch
 
-from legged_casters.sim.base import RANDOMIZABLE_FIELDS, IndexLike, SimBackend, initial_data
+from legged_casters.sim.base import RANDOMIZABLE_FIELDS, IndexLike, SimBackend, initial_data, usable_cpus
 
 _FULL = mujoco.mjtState.mjSTATE_FULLPHYSICS.value
 _CTRL = mujoco.mjtState.mjSTATE_CTRL.value
@@ -63,7 +62,7 @@ class CpuBackend(SimBackend):
                 "build the model with legged_casters.sim.base.physics_model() to drop the textures",
                 stacklevel=2,
             )
-        self.nthread = int(nthread or os.cpu_count() or 1)
+        self.nthread = int(nthread or usable_cpus())
         self._pool = mujoco.rollout.Rollout(nthread=self.nthread)
         self._models = [copy.copy(model) for _ in range(num_envs)]
         self._datas = [mujoco.MjData(model) for _ in range(self.nthread)]

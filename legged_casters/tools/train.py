@@ -13,6 +13,7 @@ import argparse
 import datetime
 import os
 import signal
+import subprocess
 import sys
 import threading
 import time
@@ -22,14 +23,16 @@ import torch
 import yaml
 
 from legged_casters.config import dump_yaml
-from legged_casters.envs.base import resolve_backend
+from legged_casters.envs.base import CPU_DEFAULT_NUM_ENVS, resolve_backend
 from legged_casters.learning.progress import BudgetReached, install_progress_hook
 from legged_casters.learning.runner import CheckpointingRunner
-from legged_casters.sim.base import BACKEND_KINDS
+from legged_casters.sim.base import BACKEND_KINDS, usable_cpus
 from legged_casters.tools import common
 from legged_casters.tools.common import UsageError
 
 PROG = "train.py"
+LAUNCHER_ENV = "LEGGED_CASTERS_LAUNCHER_CMD"
+"""Set by --procs for its workers: the command line command.txt records."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -74,6 +77,14 @@ def build_parser() -> argparse.ArgumentParser:
         "next to the simulator's thread pool)",
     )
     p.add_argument(
+        "--procs",
+        type=int,
+        default=1,
+        help="train on the CPU in N processes, one per core (torchrun, gloo: gradients averaged, "
+        "rank 0 writes the run); --num_envs is then the total, split evenly (default: the task's, "
+        "or on --resume the run's, so an iteration's batch stays the same)",
+    )
+    p.add_argument(
         "--eval_every",
         type=int,
         default=25,
@@ -108,6 +119,7 @@ def _write_run_files(run_dir: Path, task: str, experiment: str, env_cfg, train_c
     info.setdefault("task", task)
     info.setdefault("experiment", experiment)
     info.setdefault("created", datetime.datetime.now().isoformat(timespec="seconds"))
+    info["processes"] = int(os.environ.get("WORLD_SIZE", "1"))  # env.yaml's num_envs is per process
     if resumed_from:
         info.setdefault("resumed", []).append(
             {"from": str(resumed_from), "at": datetime.datetime.now().isoformat(timespec="seconds")}
@@ -121,7 +133,7 @@ def _write_run_files(run_dir: Path, task: str, experiment: str, env_cfg, train_c
     common.write_text_atomic(run_dir / f"git{tag}.diff", diff)
     with open(run_dir / "command.txt", "a") as f:
         f.write(f"# {datetime.datetime.now().isoformat(timespec='seconds')} cwd={os.getcwd()}\n")
-        f.write(common.command_line(argv) + "\n")
+        f.write(os.environ.get(LAUNCHER_ENV, common.command_line(argv)) + "\n")
 
 
 def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Path | None) -> int:
@@ -179,6 +191,8 @@ def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Pa
         run_dir = common.new_run_dir(root, experiment, train_cfg.run_name)
 
     # --- simulation -------------------------------------------------------------------------
+    if world > 1:
+        pin_to_core(device)
     common.limit_cpu_threads(device, args.torch_threads)
     torch.manual_seed(train_cfg.seed + rank)
     t0 = time.time()
@@ -236,8 +250,109 @@ def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Pa
     return common.EXIT_OK
 
 
+def _strip_flag(argv: list[str], flag: str) -> list[str]:
+    """argv without `flag VALUE` / `flag=VALUE`."""
+    out, skip = [], False
+    for item in argv:
+        if skip:
+            skip = False
+        elif item == flag:
+            skip = True
+        elif not item.startswith(flag + "="):
+            out.append(item)
+    return out
+
+
+def total_envs(args: argparse.Namespace, spec, default_log_root: Path | None) -> int:
+    """The envs of all processes together: --num_envs, else on --resume the run's (env.yaml's
+    envs per process x run.yaml's processes), else the task's."""
+    if args.num_envs is not None:
+        return args.num_envs
+    if args.resume:
+        run_dir = common.find_run(
+            common.log_root(args.log_root, default_log_root),
+            args.experiment_name or spec.train_cfg.experiment_name,
+            args.load_run,
+        )
+        saved_env, _ = common.run_configs(spec, run_dir)
+        processes = int(common.read_run_info(run_dir).get("processes", 1))
+        return (saved_env.num_envs or CPU_DEFAULT_NUM_ENVS) * processes
+    return spec.env_cfg.num_envs or CPU_DEFAULT_NUM_ENVS
+
+
+def launch_procs(args: argparse.Namespace, argv: list[str], default_log_root: Path | None) -> int:
+    """--procs N: this process starts torchrun with N copies of train.py on this machine's
+    CPU (each pins itself to one core, `pin_to_core`) and waits for them; Ctrl-C and
+    SIGTERM are passed on, so the workers stop as a single run does."""
+    if args.procs < 1:
+        raise UsageError(f"--procs must be at least 1, got {args.procs}")
+    backend = resolve_backend(args.sim_backend)
+    device = common.resolve_device(args.device, backend)
+    if device != "cpu" or backend != "cpu":
+        raise UsageError(
+            f"--procs {args.procs} runs CPU processes (device cpu, backend cpu), not device {device} with the "
+            f"{backend} backend: add --procs 1 (./setup.sh train adds --procs 2 on a CPU machine); for several "
+            "GPUs start torchrun yourself (README, 'Several GPUs')"
+        )
+    cores = usable_cpus()
+    if args.procs > cores:
+        raise UsageError(f"--procs {args.procs}: this process may use {cores} CPU core(s); one process per core")
+    task = args.task or common.default_task()
+    spec = common.check_task(task)
+    child = _strip_flag(_strip_flag(argv, "--procs"), "--num_envs")
+    total = total_envs(args, spec, default_log_root)
+    if total % args.procs:
+        raise UsageError(f"--num_envs {total} does not split evenly into {args.procs} processes")
+    child += ["--num_envs", str(total // args.procs)]
+    if args.log_root is None:
+        child += ["--log_root", str(common.log_root(None, default_log_root))]
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nnodes=1"]
+    cmd += [f"--nproc_per_node={args.procs}", "-m", "legged_casters.tools.train", *child]
+    env = {**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")}
+    env[LAUNCHER_ENV] = common.command_line(argv)
+    print(f"[{PROG}] {args.procs} processes on {cores} cores, {total // args.procs} envs each")
+    proc = subprocess.Popen(cmd, env=env)
+
+    def forward(signum, frame):
+        proc.send_signal(signum)
+
+    previous = {sig: signal.signal(sig, forward) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        return proc.wait()
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def pin_to_core(device: str) -> None:
+    """A CPU process of a distributed run takes one core of those it may use (by its local
+    rank) and one torch thread, so that the processes do not fight over cores: two such
+    processes on 2 cores simulate and learn faster than one process on both
+    (docs/training_speed.md)."""
+    local = int(os.environ.get("LOCAL_RANK", "0"))
+    local_world = int(os.environ.get("LOCAL_WORLD_SIZE", os.environ.get("WORLD_SIZE", "1")))
+    if device != "cpu" or local_world <= 1 or not hasattr(os, "sched_setaffinity"):
+        return
+    cores = sorted(os.sched_getaffinity(0))
+    if len(cores) < local_world:
+        return  # fewer cores than processes: leave the scheduler to share them
+    core = cores[local % len(cores)]
+    os.sched_setaffinity(0, {core})
+    torch.set_num_threads(1)
+    print(f"[{PROG}] rank {os.environ.get('RANK', '0')}: CPU core {core}, 1 torch thread")
+
+
 def main(argv: list[str] | None = None, default_log_root: Path | str | None = None) -> int:
     args = build_parser().parse_args(argv)
-    return common.run_cli(
-        lambda: train(args, argv, Path(default_log_root) if default_log_root else None), PROG, args.verbose
-    )
+    root = Path(default_log_root) if default_log_root else None
+    if args.procs != 1:
+        if "WORLD_SIZE" in os.environ:
+            print(f"{PROG}: error: --procs starts torchrun itself; do not run it under torchrun", file=sys.stderr)
+            return common.EXIT_USAGE
+        full = sys.argv[1:] if argv is None else list(argv)
+        return common.run_cli(lambda: launch_procs(args, full, root), PROG, args.verbose)
+    return common.run_cli(lambda: train(args, argv, root), PROG, args.verbose)
+
+
+if __name__ == "__main__":  # torchrun's workers of --procs
+    sys.exit(main())
