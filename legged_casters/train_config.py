@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
+from legged_casters.config import ConfigError
+
 
 @dataclass
 class PolicyCfg:
@@ -15,6 +17,10 @@ class PolicyCfg:
     learn_noise_std: bool = True
     """Whether PPO may change the exploration std (False: it stays init_noise_std). On casters
     the noise itself propels the robot, so PPO raises a learnt std (docs/tasks.md, runs 40-42)."""
+    noise_std_schedule: tuple[tuple[float, float], ...] = ()
+    """(iteration, std) points: before each iteration the exploration std is set to their
+    linear interpolation at the number of iterations done (held before the first point and
+    after the last), e.g. [[1550, 0.2], [1750, 0.05]]. Needs learn_noise_std false. Empty: off."""
     obs_normalization: bool = True
     critic_history: bool = True
     """Whether the critic's MLP reads the actor's proprioceptive history (it has the privileged state)."""
@@ -69,6 +75,26 @@ class TrainCfg:
         """to_rsl_rl() with what the env says about its actor (prior, observation columns)."""
         return self.to_rsl_rl(env.actor_prior(), env.policy_obs_columns())
 
+    def _noise_std_schedule(self) -> list[list[float]]:
+        p = self.policy
+        if p.learn_noise_std:
+            raise ConfigError(
+                "policy.noise_std_schedule sets the exploration std itself: "
+                "add --train-set policy.learn_noise_std=false"
+            )
+        try:
+            points = [[float(it), float(std)] for it, std in p.noise_std_schedule]
+        except (TypeError, ValueError):
+            raise ConfigError(
+                f"policy.noise_std_schedule must be [[iteration, std], ...], got {p.noise_std_schedule!r}"
+            ) from None
+        its = [it for it, _ in points]
+        if any(b <= a for a, b in zip(its, its[1:], strict=False)) or any(std <= 0 for _, std in points):
+            raise ConfigError(
+                f"policy.noise_std_schedule: iterations must increase and every std be positive, got {points}"
+            )
+        return points
+
     def to_rsl_rl(self, actor_prior: dict | None = None, obs_columns: dict | None = None) -> dict:
         """The dict OnPolicyRunner expects: actor on "policy", critic on "policy" + "critic".
         `actor_prior` (from env.actor_prior()): the actor adds that trajectory prior to its mean.
@@ -98,6 +124,8 @@ class TrainCfg:
             },
             "algorithm": {"class_name": "rsl_rl.algorithms.PPO", **vars(self.algorithm)},
         }
+        if p.noise_std_schedule:
+            cfg["noise_std_schedule"] = self._noise_std_schedule()
         if actor_prior is not None:
             cfg["actor"]["class_name"] = "legged_casters.learning.models.PriorMLPModel"
             cfg["actor"]["prior"] = actor_prior

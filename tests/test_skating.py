@@ -11,6 +11,7 @@ import yaml
 from rsl_rl.runners import OnPolicyRunner
 
 from legged_casters import registry
+from legged_casters.config import ConfigError
 from legged_casters.deploy import protocol as P
 from legged_casters.deploy.policy import ObservationBuilder, PolicyFormatError, load_meta
 from legged_casters.envs.gait import GaitPrior, GaitPriorCfg, gait_prior
@@ -271,6 +272,40 @@ def test_a_fixed_exploration_std_stays_put_while_ppo_learns(tmp_path):
     init_std = registry.get_task(TASK).train_cfg.policy.init_noise_std
     assert torch.allclose(stds[False], torch.full_like(stds[False], init_std))
     assert not torch.allclose(stds[True], torch.full_like(stds[True], init_std))
+    e.close()
+
+
+def test_the_noise_std_schedule_sets_each_iterations_std(tmp_path):
+    """policy.noise_std_schedule: before each iteration the std is the schedule's value at the
+    number of iterations done (linear between points, held after the last); a resumed runner
+    starts from the value at its own iteration. It needs the fixed std."""
+    from legged_casters.learning.runner import CheckpointingRunner
+
+    e = registry.make_env(TASK, CPU, num_envs=4)
+    train_cfg = copy.deepcopy(registry.get_task(TASK).train_cfg)
+    train_cfg.policy.learn_noise_std = False
+    train_cfg.policy.noise_std_schedule = ((0, 0.4), (2, 0.2), (3, 0.1))
+    cfg = train_cfg.for_env(e)
+    cfg["num_steps_per_env"] = 8
+    runner = CheckpointingRunner(e, cfg, log_dir=str(tmp_path), device="cpu", task=TASK)
+    used = []
+    act = runner.alg.act
+
+    def spy(*args, **kwargs):
+        used.append(round(float(runner.alg.get_policy().distribution.std_param.mean()), 6))
+        return act(*args, **kwargs)
+
+    runner.alg.act = spy
+    runner.learn(num_learning_iterations=5)
+    per_iteration = [used[i * 8] for i in range(5)]
+    assert per_iteration == pytest.approx([0.4, 0.3, 0.2, 0.1, 0.1])
+    assert all(v == per_iteration[i // 8] for i, v in enumerate(used))  # constant within an iteration
+    runner.current_learning_iteration = 1  # as after loading model_1.pt
+    runner.set_noise_std(runner.current_learning_iteration)
+    assert float(runner.alg.get_policy().distribution.std_param.mean()) == pytest.approx(0.3)
+    train_cfg.policy.learn_noise_std = True
+    with pytest.raises(ConfigError, match="learn_noise_std=false"):
+        train_cfg.for_env(e)
     e.close()
 
 

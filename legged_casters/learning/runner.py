@@ -4,9 +4,11 @@ state, iterations numbered from 1, and distributed training on CPUs (gloo)."""
 from __future__ import annotations
 
 import datetime
+import math
 import os
 from pathlib import Path
 
+import numpy as np
 import torch
 from rsl_rl.runners import OnPolicyRunner
 
@@ -26,7 +28,39 @@ class CheckpointingRunner(OnPolicyRunner):
     def __init__(self, env, train_cfg: dict, log_dir: str | None, device: str, task: str):
         self.task = task
         self.last_iteration_logged = False
+        self.noise_std_schedule = [tuple(point) for point in train_cfg.get("noise_std_schedule") or ()]
         super().__init__(env, train_cfg, log_dir=log_dir, device=device)
+        if self.noise_std_schedule:  # after each iteration's report, the std of the next one
+            report = self.logger.log
+
+            def log(**kw):
+                report(**kw)
+                self.set_noise_std(kw["it"] + 1)
+
+            self.logger.log = log
+
+    def noise_std_at(self, done: int) -> float | None:
+        """The scheduled exploration std for an iteration that starts after `done` iterations."""
+        if not self.noise_std_schedule:
+            return None
+        its, stds = zip(*self.noise_std_schedule, strict=True)
+        return float(np.interp(done, its, stds))
+
+    def set_noise_std(self, done: int) -> None:
+        """policy.noise_std_schedule: every action dimension's std set to the schedule's value."""
+        std = self.noise_std_at(done)
+        if std is None:
+            return
+        dist = self.alg.get_policy().distribution
+        with torch.no_grad():
+            if hasattr(dist, "std_param"):
+                dist.std_param.fill_(std)
+            else:
+                dist.log_std_param.fill_(math.log(std))
+
+    def learn(self, num_learning_iterations: int, init_at_random_ep_len: bool = False):
+        self.set_noise_std(self.current_learning_iteration)
+        return super().learn(num_learning_iterations, init_at_random_ep_len=init_at_random_ep_len)
 
     def completed_iterations(self) -> int:
         return self.current_learning_iteration + 1
