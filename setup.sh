@@ -91,10 +91,9 @@ case "$task" in
   install) echo "[setup] done: activate with 'source $VENV/bin/activate'" ;;
   train)
     if [ -f train.py ]; then
-      # On a CPU machine with 2+ usable cores: one training process per core, 2 of them
-      # (train.py --procs; docs/training_speed.md). A --procs of yours comes later and wins.
-      procs=$("$PY" -c 'import os, torch; print(2 if not torch.cuda.is_available() and len(os.sched_getaffinity(0)) >= 2 else 1)')
-      exec "$PY" train.py --procs "$procs" "$@"
+      # --procs auto: 2 training processes, one per core, on the CPU backend with 2+ usable
+      # cores (docs/training_speed.md). A --procs of yours comes later and wins.
+      exec "$PY" train.py --procs auto "$@"
     else
       # Until train.py lands (issue 5), the main job is the caster-physics check.
       exec "$PY" scripts/plot_caster_force.py "$@"

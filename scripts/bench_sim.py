@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import os
 import sys
 import time
 
@@ -28,7 +27,7 @@ import torch
 
 from legged_casters.robot import go2
 from legged_casters.robot.build import MODEL_FILES
-from legged_casters.sim.base import make_backend, physics_model
+from legged_casters.sim.base import make_backend, physics_model, usable_cpus
 
 
 def _ints(text: str) -> list[int]:
@@ -44,7 +43,7 @@ def ceiling(model: mujoco.MjModel, num_envs: int, nstep: int, min_time: float, *
     what this adds to the plain ceiling is the cost of the way the env calls the
     simulator, not of what its robots do.
     """
-    nthread = os.cpu_count() or 1
+    nthread = usable_cpus()  # as many threads as the CPU backend's pool
     data = [mujoco.MjData(model) for _ in range(nthread)]
     d0 = mujoco.MjData(model)
     mujoco.mj_resetDataKeyframe(model, d0, 0)
@@ -142,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
     cuda = torch.cuda.is_available()
     print(
         f"model {args.feet}: nq={model.nq} nv={model.nv} nu={model.nu}, dt={model.opt.timestep} s, "
-        f"impratio {model.opt.impratio:g}, decimation {args.decimation}; {os.cpu_count()} CPU threads; CUDA: {cuda}",
+        f"impratio {model.opt.impratio:g}, decimation {args.decimation}; {usable_cpus()} CPU threads; CUDA: {cuda}",
         flush=True,
     )
     rows = []

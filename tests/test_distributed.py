@@ -171,3 +171,17 @@ def test_procs_resume_keeps_the_runs_batch(tmp_path):
     assert train.total_envs(args, spec, None) == 64
     args = train.build_parser().parse_args(["--task", "caster_omni"])
     assert train.total_envs(args, spec, None) == 512
+
+
+def test_procs_auto_is_two_on_the_cpu_with_two_cores(monkeypatch):
+    """--procs auto (what ./setup.sh train passes): 2 processes on the CPU backend where 2 or
+    more cores are usable, else 1; anything but a number or auto is refused."""
+    from legged_casters.tools import train
+
+    parse = train.build_parser().parse_args
+    for cores, expect in ((1, 1), (2, 2), (16, 2)):
+        monkeypatch.setattr(train, "usable_cpus", lambda c=cores: c)
+        assert train.resolve_procs(parse(["--procs", "auto", "--sim_backend", "cpu", "--device", "cpu"])) == expect
+    assert train.resolve_procs(parse(["--procs", "3"])) == 3
+    with pytest.raises(SystemExit):
+        parse(["--procs", "two"])

@@ -35,6 +35,25 @@ LAUNCHER_ENV = "LEGGED_CASTERS_LAUNCHER_CMD"
 """Set by --procs for its workers: the command line command.txt records."""
 
 
+def _procs_arg(text: str) -> int | str:
+    if text == "auto":
+        return text
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of processes or auto, got {text!r}") from None
+
+
+def resolve_procs(args: argparse.Namespace) -> int:
+    """--procs auto: 2 processes where training runs on the CPU (device and backend) and this
+    process may use 2 or more cores (docs/training_speed.md measured 2 on 2 cores), else 1."""
+    if args.procs != "auto":
+        return args.procs
+    backend = resolve_backend(args.sim_backend)
+    on_cpu = backend == "cpu" and common.resolve_device(args.device, backend) == "cpu"
+    return 2 if on_cpu and usable_cpus() >= 2 else 1
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog=PROG,
@@ -78,11 +97,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--procs",
-        type=int,
+        type=_procs_arg,
         default=1,
         help="train on the CPU in N processes, one per core (torchrun, gloo: gradients averaged, "
         "rank 0 writes the run); --num_envs is then the total, split evenly (default: the task's, "
-        "or on --resume the run's, so an iteration's batch stays the same)",
+        "or on --resume the run's, so an iteration's batch stays the same); auto: 2 on the CPU "
+        "backend with 2 or more usable cores, else 1 (what ./setup.sh train passes)",
     )
     p.add_argument(
         "--eval_every",
@@ -191,8 +211,7 @@ def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Pa
         run_dir = common.new_run_dir(root, experiment, train_cfg.run_name)
 
     # --- simulation -------------------------------------------------------------------------
-    if world > 1:
-        pin_to_core(device)
+    pin_to_core(device)  # a CPU rank of a distributed run only
     common.limit_cpu_threads(device, args.torch_threads)
     torch.manual_seed(train_cfg.seed + rank)
     t0 = time.time()
@@ -291,8 +310,8 @@ def launch_procs(args: argparse.Namespace, argv: list[str], default_log_root: Pa
     if device != "cpu" or backend != "cpu":
         raise UsageError(
             f"--procs {args.procs} runs CPU processes (device cpu, backend cpu), not device {device} with the "
-            f"{backend} backend: add --procs 1 (./setup.sh train adds --procs 2 on a CPU machine); for several "
-            "GPUs start torchrun yourself (README, 'Several GPUs')"
+            f"{backend} backend: use --procs 1 or auto; for several GPUs start torchrun yourself "
+            "(README, 'Several GPUs')"
         )
     cores = usable_cpus()
     if args.procs > cores:
@@ -342,16 +361,21 @@ def pin_to_core(device: str) -> None:
     print(f"[{PROG}] rank {os.environ.get('RANK', '0')}: CPU core {core}, 1 torch thread")
 
 
+def _run(args: argparse.Namespace, argv: list[str] | None, root: Path | None) -> int:
+    if "WORLD_SIZE" in os.environ:  # a worker of --procs, or of a torchrun of yours
+        if args.procs not in (1, "auto"):
+            raise UsageError("--procs starts torchrun itself; do not run it under torchrun")
+        return train(args, argv, root)
+    args.procs = resolve_procs(args)
+    if args.procs != 1:
+        return launch_procs(args, sys.argv[1:] if argv is None else list(argv), root)
+    return train(args, argv, root)
+
+
 def main(argv: list[str] | None = None, default_log_root: Path | str | None = None) -> int:
     args = build_parser().parse_args(argv)
     root = Path(default_log_root) if default_log_root else None
-    if args.procs != 1:
-        if "WORLD_SIZE" in os.environ:
-            print(f"{PROG}: error: --procs starts torchrun itself; do not run it under torchrun", file=sys.stderr)
-            return common.EXIT_USAGE
-        full = sys.argv[1:] if argv is None else list(argv)
-        return common.run_cli(lambda: launch_procs(args, full, root), PROG, args.verbose)
-    return common.run_cli(lambda: train(args, argv, root), PROG, args.verbose)
+    return common.run_cli(lambda: _run(args, argv, root), PROG, args.verbose)
 
 
 if __name__ == "__main__":  # torchrun's workers of --procs
