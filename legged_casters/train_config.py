@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from legged_casters.config import ConfigError
+from legged_casters.learning.symmetry import MIRROR_FUNCTION
 
 
 @dataclass
@@ -60,6 +61,17 @@ class EstimatorCfg:
 
 
 @dataclass
+class SymmetryCfg:
+    """Left-right mirror symmetry in PPO (legged_casters.learning.symmetry)."""
+
+    mode: Literal["off", "loss", "augment", "both"] = "off"
+    """"loss": a mirror loss on the actor's mean; "augment": every mini-batch also holds the
+    mirrored samples (needs mirrorable actor and critic observations); "both"."""
+    mirror_loss_coeff: float = field(default=1.0, metadata={"min": 0.0})
+    """Weight of the mirror loss (the mean squared difference of actions, in action units)."""
+
+
+@dataclass
 class TrainCfg:
     experiment_name: str = "default"
     run_name: str = ""
@@ -70,10 +82,27 @@ class TrainCfg:
     policy: PolicyCfg = field(default_factory=PolicyCfg)
     algorithm: PPOCfg = field(default_factory=PPOCfg)
     estimator: EstimatorCfg = field(default_factory=EstimatorCfg)
+    symmetry: SymmetryCfg = field(default_factory=SymmetryCfg)
 
     def for_env(self, env) -> dict:
         """to_rsl_rl() with what the env says about its actor (prior, observation columns)."""
+        self._check_symmetry(env)
         return self.to_rsl_rl(env.actor_prior(), env.policy_obs_columns())
+
+    def _check_symmetry(self, env) -> None:
+        mode = self.symmetry.mode
+        if mode == "off":
+            return
+        maps = env.mirror_maps()
+        needed = ["policy"] + (["critic"] if mode in ("augment", "both") and "critic" in maps else [])
+        for group in needed:
+            if maps.get(group) is None:
+                terms = env.observation_mirror()
+                missing = [t for t, _, _ in env.obs_layout[group] if terms.get(t) is None]
+                hint = " (symmetry.mode=loss mirrors only the actor's observation)" if group != "policy" else ""
+                raise ConfigError(
+                    f"symmetry.mode={mode}: the {group!r} observation terms {missing} have no mirror image{hint}"
+                )
 
     def _noise_std_schedule(self) -> list[list[float]]:
         p = self.policy
@@ -126,6 +155,14 @@ class TrainCfg:
         }
         if p.noise_std_schedule:
             cfg["noise_std_schedule"] = self._noise_std_schedule()
+        sym = self.symmetry
+        if sym.mode != "off":
+            cfg["algorithm"]["symmetry_cfg"] = {
+                "data_augmentation_func": MIRROR_FUNCTION,
+                "use_data_augmentation": sym.mode in ("augment", "both"),
+                "use_mirror_loss": sym.mode in ("loss", "both"),
+                "mirror_loss_coeff": sym.mirror_loss_coeff,
+            }
         if actor_prior is not None:
             cfg["actor"]["class_name"] = "legged_casters.learning.models.PriorMLPModel"
             cfg["actor"]["prior"] = actor_prior

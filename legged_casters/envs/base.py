@@ -238,6 +238,56 @@ class LeggedEnv(VecEnv):
             start += dim
         return cols
 
+    # --- mirror symmetry (legged_casters.learning.symmetry) -------------------------------
+    def action_mirror(self) -> tuple[list[int], list[float]]:
+        """(index, sign) of the action's mirror image across the trunk's sagittal plane:
+        mirrored[:, k] = sign[k] * action[:, index[k]] (go2.mirror_joint per component)."""
+        joints = list(self.layout.joints)
+        pairs = [go2.mirror_joint(j) for j in joints]
+        return [joints.index(name) for name, _ in pairs], [sign for _, sign in pairs]
+
+    def observation_mirror(self) -> dict[str, tuple[list[int], list[float]] | None]:
+        """Observation term -> (index, sign) of its mirror image, as action_mirror, within the
+        term's own columns; None for a term whose mirror image its values do not determine
+        (a world-frame vector needs the heading). Terms missing here have none either."""
+        legs = go2.mirror_legs()
+        joints = self.action_mirror()
+        return {
+            "commands": ([0, 1, 2], [1.0, -1.0, -1.0]),  # vx, vy, wz
+            "ang_vel": ([0, 1, 2], [-1.0, 1.0, -1.0]),  # an axial vector: roll and yaw rates flip
+            "projected_gravity": ([0, 1, 2], [1.0, -1.0, 1.0]),
+            "base_lin_vel": ([0, 1, 2], [1.0, -1.0, 1.0]),
+            "lin_vel": None,  # world frame
+            "base_height": ([0], [1.0]),
+            "joint_pos": joints,
+            "joint_vel": joints,
+            "actions": joints,
+            "feet_contact": (legs, [1.0] * 4),
+            "wheel_contact": (legs, [1.0] * 4),
+        }
+
+    def mirror_maps(self) -> dict[str, tuple[torch.Tensor, torch.Tensor] | None]:
+        """Observation group -> (index, sign) tensors of the whole group's mirror image, or
+        None when one of its terms has none."""
+        terms = self.observation_mirror()
+        maps: dict[str, tuple[torch.Tensor, torch.Tensor] | None] = {}
+        for group, layout in self.obs_layout.items():
+            index: list[int] = []
+            sign: list[float] = []
+            for term, dim, _ in layout:
+                spec = terms.get(term)
+                if spec is None:
+                    index = []
+                    break
+                if len(spec[0]) != dim or len(spec[1]) != dim or sorted(spec[0]) != list(range(dim)):
+                    raise ValueError(f"the mirror of observation term {term!r} must permute its {dim} columns")
+                index += [len(sign) + k for k in spec[0]]
+                sign += list(spec[1])
+            maps[group] = (
+                (torch.tensor(index, device=self.device), torch.tensor(sign, device=self.device)) if index else None
+            )
+        return maps
+
     def observation_dims(self) -> dict[str, int]:
         return {group: sum(dim for _, dim, _ in layout) for group, layout in self.obs_layout.items()}
 

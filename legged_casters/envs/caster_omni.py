@@ -318,6 +318,33 @@ class CasterOmniEnv(LeggedEnv):
             return None
         return {"length": int(self.cfg.history_length), "terms": list(HISTORY_TERMS), "order": "newest first"}
 
+    def observation_mirror(self) -> dict[str, tuple[list[int], list[float]] | None]:
+        """...plus the caster task's terms: the mode mask and swivel states per leg (a swivel
+        turns the other way in the mirror image), the shared clock phase unchanged, and the
+        history as its HISTORY_TERMS, step by step. caster_zaxis is a world-frame vector."""
+        terms = super().observation_mirror()
+        legs = go2.mirror_legs()
+        terms.update(
+            mode_mask=(legs, [1.0] * 4),
+            swivel_pos=(legs, [-1.0] * 4),
+            swivel_vel=(legs, [-1.0] * 4),
+            gait_phase=([0, 1], [1.0, 1.0]),
+            caster_zaxis=None,
+        )
+        step = [terms[t] for t in HISTORY_TERMS]
+        if all(s is not None for s in step):
+            index: list[int] = []
+            sign: list[float] = []
+            for spec in step:
+                index += [len(sign) + k for k in spec[0]]
+                sign += list(spec[1])
+            width = len(sign)
+            terms["proprio_history"] = (
+                [k * width + i for k in range(self.cfg.history_length) for i in index],
+                sign * self.cfg.history_length,
+            )
+        return terms
+
     def _obs_proprio_history(self) -> torch.Tensor:
         """The previous `history_length` steps of HISTORY_TERMS, newest first (already
         scaled: this term's own scale is 1)."""

@@ -118,6 +118,24 @@ def leg_signs(leg: str) -> tuple[float, float]:
     return (1.0 if leg[0] == "F" else -1.0, 1.0 if leg[1] == "L" else -1.0)
 
 
+def mirror_joint(name: str) -> tuple[str, float]:
+    """The joint that mirrors `name` across the trunk's sagittal (x-z) plane and the sign
+    that maps its angle: 'FL_hip_joint' -> ('FR_hip_joint', -1.0). Left and right swap;
+    a hinge about the trunk's x or z axis (the hips, the caster swivels) turns the other
+    way in the mirror image, one about the y axis (thighs, calves, wheels) the same way."""
+    leg, rest = name[:2], name[2:]
+    if leg not in LEGS:
+        raise ValueError(f"{name!r} is not a Go2 leg joint (it must start with one of {LEGS})")
+    kind = rest.split("_")[1]
+    flips = kind == "hip" or rest.startswith("_caster_swivel")
+    return leg[0] + ("R" if leg[1] == "L" else "L") + rest, (-1.0 if flips else 1.0)
+
+
+def mirror_legs() -> list[int]:
+    """LEGS order -> the index of each leg's mirror image (FL <-> FR, RL <-> RR)."""
+    return [LEGS.index(leg[0] + ("R" if leg[1] == "L" else "L")) for leg in LEGS]
+
+
 def default_joint_positions() -> list[float]:
     return [NOMINAL_POSE[split_joint_name(j)[1]] for j in ACTUATED_JOINTS]
 

@@ -1,0 +1,63 @@
+"""Left-right mirror symmetry for PPO (rsl_rl's symmetry extension, Mittal et al., ICRA 2024,
+"Symmetry Considerations for Learning Task Symmetric Robot Policies").
+
+The Go2 and its casters are mirror images of themselves across the trunk's sagittal (x-z)
+plane (tests/test_symmetry.py checks every joint of the three robots), and so is each task:
+a robot told to turn left should do what its mirror image does when told to turn right.
+A policy trained without that knowledge need not: caster_omni's runs 46-49 (docs/tasks.md)
+turned right at 0.6-0.7 rad/s and left at 0.1-0.4 under the same 0.8 rad/s command.
+
+`train.symmetry.mode` switches it on:
+* "loss": an extra loss, `mirror_loss_coeff` x the mean squared difference between the
+  actor's mean action for the mirrored observation and the mirror of its mean action for
+  the observation itself (only the actor's observation group has to be mirrorable);
+* "augment": every PPO mini-batch also holds the mirror image of each sample (observation
+  and action, with the same advantage and return), for the actor and the critic alike;
+* "both".
+
+The maps come from the env: `env.action_mirror()` and `env.mirror_maps()` (per observation
+group, built from `observation_mirror()`'s per-term maps, which read go2.mirror_joint and
+go2.mirror_legs). A group without a map (a term in the world frame) is passed on unmirrored:
+with "loss" only the actor's group is read, and the train config refuses "augment" for a
+task whose critic observation has no map.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict
+
+MIRROR_FUNCTION = "legged_casters.learning.symmetry:mirror_batch"
+"""What the algorithm's symmetry_cfg names as its data_augmentation_func."""
+
+
+def _maps(env) -> tuple[dict, tuple[torch.Tensor, torch.Tensor]]:
+    cached = getattr(env, "_mirror_cache", None)
+    if cached is None:
+        index, sign = env.action_mirror()
+        action = (torch.tensor(index, device=env.device), torch.tensor(sign, device=env.device))
+        cached = env._mirror_cache = (env.mirror_maps(), action)
+    return cached
+
+
+def mirror(x: torch.Tensor, index: torch.Tensor, sign: torch.Tensor) -> torch.Tensor:
+    """x's mirror image: column k is sign[k] * x[:, index[k]]."""
+    return x[:, index] * sign.to(x.dtype)
+
+
+def mirror_batch(
+    env, obs: TensorDict | None = None, actions: torch.Tensor | None = None
+) -> tuple[TensorDict | None, torch.Tensor | None]:
+    """rsl_rl's data augmentation function: (obs, actions) -> each with its mirror image
+    appended along the batch dimension (originals first); None stays None."""
+    groups, action_map = _maps(env)
+    out_obs = out_actions = None
+    if obs is not None:
+        mirrored = {}
+        for key, value in obs.items():
+            spec = groups.get(key)
+            mirrored[key] = mirror(value, *spec) if spec is not None else value
+        out_obs = torch.cat([obs, TensorDict(mirrored, batch_size=obs.batch_size, device=obs.device)], dim=0)
+    if actions is not None:
+        out_actions = torch.cat([actions, mirror(actions, *action_map)], dim=0)
+    return out_obs, out_actions

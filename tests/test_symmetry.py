@@ -1,0 +1,198 @@
+"""Left-right mirror symmetry: the robots, the maps of actions and observations, the prior,
+and PPO with symmetry.mode (legged_casters.learning.symmetry)."""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+
+from legged_casters import registry
+from legged_casters.config import ConfigError
+from legged_casters.envs.gait import GaitPriorCfg, gait_prior
+from legged_casters.learning.symmetry import mirror, mirror_batch
+from legged_casters.robot import build, go2
+
+REFLECT = np.diag([1.0, -1.0, 1.0])
+
+QUIET = [
+    "sim.backend=cpu",
+    "noise.enabled=false",
+    "domain_rand.randomize_friction=false",
+    "domain_rand.randomize_base_mass=false",
+    "domain_rand.randomize_com=false",
+    "domain_rand.randomize_gains=false",
+    "domain_rand.push_robots=false",
+    "domain_rand.joint_damping={}",
+    "domain_rand.joint_frictionloss_scale={}",
+    "commands.resampling_time=100",
+]
+
+
+@pytest.mark.parametrize("feet", ["caster", "point", "wheel"])
+def test_robot_is_its_own_mirror_image(feet):
+    """Every leg joint's mirror (go2.mirror_joint) sits at the reflected anchor, with the
+    axis that makes the sign right: rotating joint j by q and its mirror by sign * q give
+    mirror-image poses. Masses and centres of mass of left and right bodies agree."""
+    m = build.build_spec(feet).compile()
+    d = mujoco.MjData(m)
+    d.qpos[:] = m.qpos0
+    d.qpos[0:3] = 0.0
+    mujoco.mj_forward(m, d)
+    names = [m.joint(i).name for i in range(m.njnt) if m.joint(i).name[:2] in go2.LEGS]
+    assert len(names) == {"caster": 20, "point": 12, "wheel": 16}[feet]
+    for name in names:
+        other, sign = go2.mirror_joint(name)
+        assert go2.mirror_joint(other) == (name, sign)
+        np.testing.assert_allclose(d.joint(other).xanchor, REFLECT @ d.joint(name).xanchor, atol=1e-9)
+        # reflecting a rotation about axis a by q gives one about REFLECT a by -q
+        np.testing.assert_allclose(d.joint(other).xaxis, -sign * (REFLECT @ d.joint(name).xaxis), atol=1e-9)
+    for i in range(m.nbody):
+        name = m.body(i).name
+        if name[:2] in go2.LEGS:
+            other = name[0] + ("R" if name[1] == "L" else "L") + name[2:]
+            assert m.body(other).mass[0] == pytest.approx(m.body(name).mass[0])
+            np.testing.assert_allclose(d.body(other).xipos, REFLECT @ d.body(name).xipos, atol=1e-9)
+
+
+def test_mirror_joint_rejects_other_names():
+    with pytest.raises(ValueError, match="not a Go2 leg joint"):
+        go2.mirror_joint("trunk_joint")
+
+
+def _mirror_prior_inputs(cmd, mask, vel):
+    legs = go2.mirror_legs()
+    return cmd * torch.tensor([1.0, -1.0, -1.0]), mask[:, legs], vel * torch.tensor([1.0, -1.0, 1.0])
+
+
+def test_gait_prior_is_mirror_equivariant():
+    """The prior inside caster_omni's actor: the mirrored command (mask, velocity estimate)
+    gives the mirrored joint offsets, so a symmetric MLP plus the prior is symmetric."""
+    env_like = type("E", (), {"layout": go2.action_layout("caster")})
+    from legged_casters.envs.base import LeggedEnv
+
+    index, sign = LeggedEnv.action_mirror(env_like)
+    gen = torch.Generator().manual_seed(0)
+    n = 64
+    cmd = (torch.rand(n, 3, generator=gen) - 0.5) * 4.0
+    mask = (torch.rand(n, 4, generator=gen) < 0.3).float()
+    vel = (torch.rand(n, 3, generator=gen) - 0.5) * 3.0
+    sin_phase = torch.rand(n, generator=gen) * 2 - 1
+    cfg = GaitPriorCfg(enabled=True, tilt=0.2, tilt_backward=0.3, speed_feedback=1.0, command_share=0.3)
+    out = gait_prior(cfg, cmd, mask, sin_phase, velocity=vel)
+    cmd_m, mask_m, vel_m = _mirror_prior_inputs(cmd, mask, vel)
+    out_m = gait_prior(cfg, cmd_m, mask_m, sin_phase, velocity=vel_m)
+    torch.testing.assert_close(out_m, mirror(out, torch.tensor(index), torch.tensor(sign)), atol=1e-6, rtol=0)
+
+
+def mirror_state(model, x: torch.Tensor, kind: str) -> torch.Tensor:
+    """The mirror image of a (1, nq) qpos or (1, nv) qvel of a Go2 model: the free joint
+    reflected (position y, the quaternion's x and z; linear velocity y, body rates x and z),
+    each leg joint moved to its mirror with go2.mirror_joint's sign."""
+    out = x.clone()
+    if kind == "qpos":
+        out[0, 1] = -x[0, 1]
+        out[0, 4] = -x[0, 4]
+        out[0, 6] = -x[0, 6]
+    else:
+        out[0, 1] = -x[0, 1]
+        out[0, 3] = -x[0, 3]
+        out[0, 5] = -x[0, 5]
+    for i in range(model.njnt):
+        name = model.joint(i).name
+        if name[:2] not in go2.LEGS:
+            continue
+        other, sign = go2.mirror_joint(name)
+        adr = "qposadr" if kind == "qpos" else "dofadr"
+        out[0, getattr(model.joint(other), adr)[0]] = sign * x[0, getattr(model.joint(name), adr)[0]]
+    return out
+
+
+def test_caster_omni_mirrored_twin_observes_the_mirror_image():
+    """Two caster robots start in mirror-image states (a reset's random pose, moving); one
+    gets commands and actions, the other their mirror images. For 1 s of skating, every policy observation of the
+    second (history and clock included) is the mirror map of the first's, and so are the
+    swivel states the critic sees."""
+    env = registry.make_env("caster_omni", QUIET, num_envs=2)
+    env.set_mode("four_wheel")
+    qpos, qvel = env.sim.qpos[0:1].clone(), env.sim.qvel[0:1].clone()  # a reset's random pose
+    qvel[0, 0:3] = torch.tensor([0.3, 0.2, 0.0])
+    qvel[0, 3:6] = torch.tensor([0.1, -0.2, 0.3])
+    env.sim.reset([0, 1], torch.cat([qpos, mirror_state(env.model, qpos, "qpos")]),
+                  torch.cat([qvel, mirror_state(env.model, qvel, "qvel")]))  # fmt: skip
+    env._refresh_state()
+    env.commands[0] = torch.tensor([0.6, 0.3, 0.5])
+    env.commands[1] = torch.tensor([0.6, -0.3, -0.5])
+    env.episode_length_buf[:] = 0
+    env.gait_phase[:] = 0.0
+    env.history[:] = 0.0
+    env.actions[:] = 0.0
+    maps = env.mirror_maps()
+    assert maps["critic"] is None  # caster_zaxis is a world-frame vector
+    pol_index, pol_sign = maps["policy"]
+    act_index, act_sign = (torch.tensor(v) for v in env.action_mirror())
+    gen = torch.Generator().manual_seed(1)
+    swivel = env.obs_layout["critic"]
+    worst = 0.0
+    for step in range(50):
+        # the skating prior of robot 0 (what caster_omni's actor adds to its MLP) and some noise
+        a = env.gait_offsets()[0] / env.cfg.control.action_scale + 0.3 * torch.randn(12, generator=gen)
+        obs, _, dones, _ = env.step(torch.stack([a, mirror(a[None], act_index, act_sign)[0]]))
+        assert not dones.any(), step
+        pol = obs["policy"]
+        err = (pol[1] - mirror(pol[0:1], pol_index, pol_sign)[0]).abs()
+        worst = max(worst, err.max().item())
+        assert err.max().item() < 1e-4, (step, err.argmax().item())
+        crit = obs["critic"]
+        start = sum(dim for term, dim, _ in swivel[:1])  # caster_zaxis first, then swivel_pos, swivel_vel
+        assert [t for t, _, _ in swivel[:3]] == ["caster_zaxis", "swivel_pos", "swivel_vel"]
+        sp0, sp1 = crit[0, start : start + 4], crit[1, start : start + 4]
+        torch.testing.assert_close(sp1, -sp0[go2.mirror_legs()], atol=1e-4, rtol=0)
+    assert env.base_lin_vel[0, 0] > 0.1  # it skated
+    print("largest mirror mismatch", worst)
+
+
+def test_mirror_batch_appends_mirror_images():
+    env = registry.make_env("caster_omni", ["sim.backend=cpu"], num_envs=3)
+    obs = env.get_observations()
+    actions = torch.randn(3, 12)
+    obs2, actions2 = mirror_batch(env, obs, actions)
+    assert obs2.batch_size[0] == 6 and actions2.shape == (6, 12)
+    torch.testing.assert_close(obs2[:3]["policy"], obs["policy"])
+    index, sign = env.mirror_maps()["policy"]
+    torch.testing.assert_close(obs2[3:]["policy"], mirror(obs["policy"], index, sign))
+    # twice mirrored is the original
+    twice, twice_a = mirror_batch(env, obs2[3:], actions2[3:])
+    torch.testing.assert_close(twice[3:]["policy"], obs["policy"])
+    torch.testing.assert_close(twice_a[3:], actions)
+    # a group without a map passes unmirrored
+    torch.testing.assert_close(obs2[3:]["critic"], obs["critic"])
+    assert mirror_batch(env, None, actions)[0] is None
+
+
+def test_symmetry_config_checks_the_task():
+    env = registry.make_env("caster_omni", ["sim.backend=cpu"], num_envs=2)
+    _, cfg = registry.task_configs("caster_omni", train_overrides=["symmetry.mode=augment"])
+    with pytest.raises(ConfigError, match=r"'critic' observation terms \['caster_zaxis', 'lin_vel'\] have no mirror"):
+        cfg.for_env(env)
+    cfg.symmetry.mode = "loss"
+    rsl = cfg.for_env(env)
+    sym = rsl["algorithm"]["symmetry_cfg"]
+    assert sym["use_mirror_loss"] and not sym["use_data_augmentation"]
+    cfg.symmetry.mode = "off"
+    assert "symmetry_cfg" not in cfg.for_env(env)["algorithm"]
+
+
+@pytest.mark.parametrize("task", ["go2_flat", "go2_wheel_flat"])
+def test_point_foot_and_wheel_tasks_mirror_every_group(task):
+    """Their observations are all in the trunk frame or per leg: "augment" is allowed."""
+    env = registry.make_env(task, ["sim.backend=cpu"], num_envs=2)
+    maps = env.mirror_maps()
+    assert maps["policy"] is not None and maps["critic"] is not None
+    _, cfg = registry.task_configs(task, train_overrides=["symmetry.mode=both"])
+    sym = cfg.for_env(env)["algorithm"]["symmetry_cfg"]
+    assert sym["use_data_augmentation"] and sym["use_mirror_loss"]
+    obs = env.get_observations()
+    twice, _ = mirror_batch(env, mirror_batch(env, obs)[0][2:])
+    torch.testing.assert_close(twice[2:]["critic"], obs["critic"])
