@@ -67,8 +67,9 @@ class SymmetryCfg:
     mode: Literal["off", "loss", "augment", "both"] = "off"
     """"loss": a mirror loss on the actor's mean; "augment": every mini-batch also holds the
     mirrored samples (needs mirrorable actor and critic observations); "both"."""
-    mirror_loss_coeff: float = field(default=1.0, metadata={"min": 0.0})
-    """Weight of the mirror loss (the mean squared difference of actions, in action units)."""
+    mirror_loss_coeff: float = field(default=4.0, metadata={"min": 0.0})
+    """Weight of the mirror loss (the mean squared difference of actions, in action units);
+    4 as in Yu, Turk and Liu (SIGGRAPH 2018, "Learning Symmetric and Low-Energy Locomotion")."""
 
 
 @dataclass
