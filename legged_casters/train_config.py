@@ -64,9 +64,10 @@ class EstimatorCfg:
 class SymmetryCfg:
     """Left-right mirror symmetry in PPO (legged_casters.learning.symmetry)."""
 
-    mode: Literal["off", "loss", "augment", "both"] = "off"
+    mode: Literal["none", "log", "loss", "augment", "both"] = "none"
     """"loss": a mirror loss on the actor's mean; "augment": every mini-batch also holds the
-    mirrored samples (needs mirrorable actor and critic observations); "both"."""
+    mirrored samples (needs mirrorable actor and critic observations); "both"; "log": the
+    mirror loss is computed and logged (Loss/symmetry) but not learnt from."""
     mirror_loss_coeff: float = field(default=4.0, metadata={"min": 0.0})
     """Weight of the mirror loss (the mean squared difference of actions, in action units);
     4 as in Yu, Turk and Liu (SIGGRAPH 2018, "Learning Symmetric and Low-Energy Locomotion")."""
@@ -92,7 +93,7 @@ class TrainCfg:
 
     def _check_symmetry(self, env) -> None:
         mode = self.symmetry.mode
-        if mode == "off":
+        if mode == "none":
             return
         maps = env.mirror_maps()
         needed = ["policy"] + (["critic"] if mode in ("augment", "both") and "critic" in maps else [])
@@ -157,7 +158,7 @@ class TrainCfg:
         if p.noise_std_schedule:
             cfg["noise_std_schedule"] = self._noise_std_schedule()
         sym = self.symmetry
-        if sym.mode != "off":
+        if sym.mode != "none":
             cfg["algorithm"]["symmetry_cfg"] = {
                 "data_augmentation_func": MIRROR_FUNCTION,
                 "use_data_augmentation": sym.mode in ("augment", "both"),

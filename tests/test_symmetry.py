@@ -180,7 +180,10 @@ def test_symmetry_config_checks_the_task():
     rsl = cfg.for_env(env)
     sym = rsl["algorithm"]["symmetry_cfg"]
     assert sym["use_mirror_loss"] and not sym["use_data_augmentation"]
-    cfg.symmetry.mode = "off"
+    cfg.symmetry.mode = "log"
+    sym = cfg.for_env(env)["algorithm"]["symmetry_cfg"]
+    assert not sym["use_mirror_loss"] and not sym["use_data_augmentation"]
+    cfg.symmetry.mode = "none"
     assert "symmetry_cfg" not in cfg.for_env(env)["algorithm"]
 
 
@@ -196,3 +199,39 @@ def test_point_foot_and_wheel_tasks_mirror_every_group(task):
     obs = env.get_observations()
     twice, _ = mirror_batch(env, mirror_batch(env, obs)[0][2:])
     torch.testing.assert_close(twice[2:]["critic"], obs["critic"])
+
+
+def _train_two_iterations(tmp_path, mode: str, name: str) -> tuple[dict, list[float]]:
+    from legged_casters.learning.runner import CheckpointingRunner
+
+    torch.manual_seed(0)
+    env = registry.make_env("caster_omni", ["sim.backend=cpu", "seed=3"], num_envs=4)
+    _, train_cfg = registry.task_configs("caster_omni", train_overrides=[f"symmetry.mode={mode}"])
+    cfg = train_cfg.for_env(env)
+    cfg["num_steps_per_env"] = 8
+    runner = CheckpointingRunner(env, cfg, log_dir=str(tmp_path / name), device="cpu", task="caster_omni")
+    losses = []
+    update = runner.alg.update
+
+    def spy():
+        out = update()
+        losses.append(out.get("symmetry"))
+        return out
+
+    runner.alg.update = spy
+    runner.learn(num_learning_iterations=2)
+    env.close()
+    return {k: v.clone() for k, v in runner.alg.actor.state_dict().items()}, losses
+
+
+def test_symmetry_log_measures_without_learning_and_loss_learns(tmp_path):
+    """mode=log reports the mirror loss and trains exactly as mode=none; mode=loss trains
+    differently (its gradient reaches the actor)."""
+    off, off_losses = _train_two_iterations(tmp_path, "none", "none")
+    logged, log_losses = _train_two_iterations(tmp_path, "log", "log")
+    learnt, loss_losses = _train_two_iterations(tmp_path, "loss", "loss")
+    assert off_losses == [None, None]
+    assert all(v is not None and v > 0.0 for v in log_losses + loss_losses)
+    for key in off:
+        torch.testing.assert_close(logged[key], off[key], atol=0, rtol=0)
+    assert any(not torch.equal(learnt[key], off[key]) for key in off)

@@ -13,7 +13,9 @@ turned right at 0.6-0.7 rad/s and left at 0.1-0.4 under the same 0.8 rad/s comma
   the observation itself (only the actor's observation group has to be mirrorable);
 * "augment": every PPO mini-batch also holds the mirror image of each sample (observation
   and action, with the same advantage and return), for the actor and the critic alike;
-* "both".
+* "both";
+* "log": the mirror loss is only measured (Loss/symmetry in TensorBoard), e.g. for a control
+  run beside one that learns from it.
 
 The maps come from the env: `env.action_mirror()` and `env.mirror_maps()` (per observation
 group, built from `observation_mirror()`'s per-term maps, which read go2.mirror_joint and
