@@ -293,7 +293,9 @@ def loopback(args, i: int) -> dict | None:
 
         operate(0.0, 30.0, until=lambda: state_is(P.BridgeState.STANDUP) or state_is(P.BridgeState.RUNNING))
         n0 = len(truths)
-        operate(0.0, 10.0, until=lambda: state_is(P.BridgeState.RUNNING))
+        # a stand-up takes about 3 s, up to max_tries righting-and-fold tries when it tips;
+        # a busy machine runs the robot side behind real time: wait while it is standing up
+        operate(0.0, 40.0, until=lambda: not state_is(P.BridgeState.STANDUP))
         operate(0.0, 1.0)
         if not state_is(P.BridgeState.RUNNING):
             last = statuses[-1] if statuses else None
