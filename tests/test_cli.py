@@ -114,6 +114,7 @@ def test_run_folder_holds_checkpoints_configs_git_state_and_events(run):
     events.Reload()
     tags = set(events.Tags()["scalars"])
     assert {"Eval/vx_error", "Eval/vy_error", "Eval/wz_error", "Eval/falls", "Eval/time_share"} <= tags
+    assert {"Eval/scenario/wz_+0.8", "Eval/scenario/wz_-0.8", "Eval/scenario/vx_+0.5"} <= tags  # each way
     assert {f"Noise/std_{j}" for j in go2.ACTUATED_JOINTS} <= tags
     # The best-evaluated policy so far is kept as model_best.pt, reachable as --checkpoint best.
     best = common.find_checkpoint(run_dir, "best")

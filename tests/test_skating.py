@@ -417,7 +417,12 @@ def test_evaluation_of_a_standing_policy_reports_the_command_as_error():
     assert by["fig6 step"].extra["sign_change_s"] == float("inf")
     checks = {name: ok for name, ok, _ in evaluate.verdict(res)}
     assert not checks["vx +0.5: |vx error| <= 0.15"]
-    assert evaluate.summary(res)["vx_error"] == pytest.approx((0.5 + 0.5 + 1.0) / 3, abs=0.05)
+    summary = evaluate.summary(res)
+    assert summary["vx_error"] == pytest.approx((0.5 + 0.5 + 1.0) / 3, abs=0.05)
+    # each tracking scenario on its own axis too (TensorBoard Eval/scenario/...), not the step
+    assert summary["scenario/vx_+1.0"] == pytest.approx(1.0, abs=0.05)
+    assert summary["scenario/vx_-0.5"] == pytest.approx(by["vx -0.5"].err["vx"])
+    assert not any("fig6" in key for key in summary)
 
 
 def test_bridge_rebuilds_the_whole_observation_with_clock_and_history(tmp_path):

@@ -435,13 +435,19 @@ def cost_of_transport(env, power: torch.Tensor, xy: torch.Tensor) -> float:
 
 
 def summary(results: list[ScenarioResult]) -> dict[str, float]:
-    """Scalars for TensorBoard: mean |error| per axis over the tracking scenarios, falls."""
+    """Scalars for TensorBoard: mean |error| per axis over the tracking scenarios, falls, and
+    each tracking scenario's error on its own axis as `scenario/<name>` (e.g. `scenario/wz_+0.8`
+    beside `scenario/wz_-0.8`: a policy that turns one way only shows there)."""
     track = [r for r in results if r.kind == "track"]
     out = {}
     for key in ("vx", "vy", "wz"):
         rel = [r.err[key] for r in track if r.name.startswith(key)]
         if rel:
             out[f"{key}_error"] = float(np.mean(rel))
+    for r in track:
+        axis = r.name.split()[0]
+        if axis in r.err:
+            out["scenario/" + r.name.replace(" ", "_")] = float(r.err[axis])
     out["falls"] = float(sum(r.falls for r in results))
     est = [r.extra["est_rms"] for r in track if "est_rms" in r.extra]
     if est:
