@@ -587,6 +587,29 @@ class DeterministicEval:
         self.env.close()
 
 
+def symmetrised(policy, env):
+    """policy made exactly left-right symmetric: the mean of its action for the observation
+    and the mirror image of its action for the mirrored observation (the maps of
+    legged_casters.learning.symmetry). A diagnostic: it tells a policy's one-sidedness from
+    what its symmetric part does."""
+    from legged_casters.learning.symmetry import mirror
+
+    groups = env.mirror_maps()
+    if groups.get("policy") is None:
+        raise UsageError(f"--symmetrise: {type(env).__name__}'s policy observation has no mirror image")
+    index, sign = (torch.tensor(v) for v in env.action_mirror())
+
+    def sym(obs: TensorDict) -> torch.Tensor:
+        mirrored = TensorDict(
+            {k: mirror(v, *groups[k]) if groups.get(k) is not None else v for k, v in obs.items()},
+            batch_size=obs.batch_size,
+        )
+        return 0.5 * (policy(obs) + mirror(policy(mirrored), index, sign))
+
+    sym.estimate = getattr(policy, "estimate", None)
+    return sym
+
+
 # --- CLI ------------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -598,6 +621,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--action-latency-ms", type=float, default=0.0, help="action latency (ms, whole physics steps)")
     p.add_argument("--noise", action="store_true", help="with the training's observation noise")
     p.add_argument("--imu-bias", action="store_true", help="with a constant IMU bias per robot (IMU_BIAS)")
+    p.add_argument(
+        "--symmetrise",
+        action="store_true",
+        help="run the policy made exactly left-right symmetric (the mean of its action and the mirror image of its "
+        "action for the mirrored observation): a diagnostic, docs/tasks.md",
+    )
     p.add_argument(
         "--sim2sim",
         action="store_true",
@@ -667,6 +696,10 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
             policy = lambda obs: actor(obs, stochastic_output=stochastic)  # noqa: E731
             policy.estimate = actor_estimator(actor)
             label = f"{sel.ckpt_path}" + (" (stochastic)" if stochastic else "")
+    if args.symmetrise:
+        if args.stochastic:
+            raise UsageError("--symmetrise runs the deterministic actor; leave out --stochastic")
+        label += " (symmetrised)"
     scenarios = applicable(SCENARIO_SETS[args.scenarios], spec.env_class, env_cfg)
     if args.sim2sim:
         if args.physics_dt or args.action_latency_ms or args.noise or args.imu_bias:
@@ -689,9 +722,8 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
         print(f"[{PROG}] {label}: task {task}, {len(scenarios)} scenarios on {env.num_envs} envs; {name}")
         t0 = time.time()
         try:
-            results = run_scenarios(
-                env, policy, scenarios, estimator=getattr(policy, "estimate", None), command_gain=True
-            )
+            run = symmetrised(policy, env) if args.symmetrise else policy
+            results = run_scenarios(env, run, scenarios, estimator=getattr(policy, "estimate", None), command_gain=True)
         finally:
             env.close()
         print(format_table(results))
