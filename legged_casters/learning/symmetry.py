@@ -47,19 +47,23 @@ def mirror(x: torch.Tensor, index: torch.Tensor, sign: torch.Tensor) -> torch.Te
     return x[:, index] * sign.to(x.dtype)
 
 
+def mirror_observation(env, obs: TensorDict) -> TensorDict:
+    """obs's mirror image, group by group; a group without a map is passed on unmirrored."""
+    groups, _ = _maps(env)
+    mirrored = {k: mirror(v, *groups[k]) if groups.get(k) is not None else v for k, v in obs.items()}
+    return TensorDict(mirrored, batch_size=obs.batch_size, device=obs.device)
+
+
+def mirror_action(env, actions: torch.Tensor) -> torch.Tensor:
+    """actions' mirror image (env.action_mirror)."""
+    return mirror(actions, *_maps(env)[1])
+
+
 def mirror_batch(
     env, obs: TensorDict | None = None, actions: torch.Tensor | None = None
 ) -> tuple[TensorDict | None, torch.Tensor | None]:
     """rsl_rl's data augmentation function: (obs, actions) -> each with its mirror image
     appended along the batch dimension (originals first); None stays None."""
-    groups, action_map = _maps(env)
-    out_obs = out_actions = None
-    if obs is not None:
-        mirrored = {}
-        for key, value in obs.items():
-            spec = groups.get(key)
-            mirrored[key] = mirror(value, *spec) if spec is not None else value
-        out_obs = torch.cat([obs, TensorDict(mirrored, batch_size=obs.batch_size, device=obs.device)], dim=0)
-    if actions is not None:
-        out_actions = torch.cat([actions, mirror(actions, *action_map)], dim=0)
+    out_obs = None if obs is None else torch.cat([obs, mirror_observation(env, obs)], dim=0)
+    out_actions = None if actions is None else torch.cat([actions, mirror_action(env, actions)], dim=0)
     return out_obs, out_actions

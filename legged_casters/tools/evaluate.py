@@ -592,22 +592,11 @@ def symmetrised(policy, env):
     and the mirror image of its action for the mirrored observation (the maps of
     legged_casters.learning.symmetry). A diagnostic: it tells a policy's one-sidedness from
     what its symmetric part does."""
-    from legged_casters.learning.symmetry import mirror
+    from legged_casters.learning.symmetry import mirror_action, mirror_observation
 
-    groups = env.mirror_maps()
-    if groups.get("policy") is None:
+    if env.mirror_maps().get("policy") is None:
         raise UsageError(f"--symmetrise: {type(env).__name__}'s policy observation has no mirror image")
-    index, sign = (torch.tensor(v) for v in env.action_mirror())
-
-    def sym(obs: TensorDict) -> torch.Tensor:
-        mirrored = TensorDict(
-            {k: mirror(v, *groups[k]) if groups.get(k) is not None else v for k, v in obs.items()},
-            batch_size=obs.batch_size,
-        )
-        return 0.5 * (policy(obs) + mirror(policy(mirrored), index, sign))
-
-    sym.estimate = getattr(policy, "estimate", None)
-    return sym
+    return lambda obs: 0.5 * (policy(obs) + mirror_action(env, policy(mirror_observation(env, obs))))
 
 
 # --- CLI ------------------------------------------------------------------------------------
