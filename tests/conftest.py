@@ -23,3 +23,20 @@ def wheel_model() -> mujoco.MjModel:
 def models(caster_model, point_model, wheel_model) -> dict[str, mujoco.MjModel]:
     """feet kind -> the committed model."""
     return {"caster": caster_model, "point": point_model, "wheel": wheel_model}
+
+
+REALTIME_TRIES = 3
+"""Tries of a wall-clock test (marker `realtime`, or the `realtime` fixture of
+tests/test_deploy.py) before it counts as failed."""
+
+
+def pytest_collection_modifyitems(config, items):
+    """Wall-clock tests get REALTIME_TRIES tries (pytest-rerunfailures, each from a fresh
+    start: new processes, sessions and tmp_path). They run the bridge and the robot side in
+    real time against 30 ms staleness limits and 2 ms physics; on a shared 2-core virtual
+    machine one scheduling stall of 30-60 ms (docs/deploy.md, "Timing") fails a try whatever
+    the code does. A broken chain fails every try; each failed try is printed in the
+    "rerun" lines of the summary (-ra)."""
+    for item in items:
+        if item.get_closest_marker("realtime") or "realtime" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.flaky(reruns=REALTIME_TRIES - 1, reruns_delay=1))

@@ -284,6 +284,7 @@ def _stop(*procs: subprocess.Popen | None) -> str:
     return out
 
 
+@pytest.mark.realtime
 def test_secured_chain_runs_and_ignores_wrong_role_messages(pki, tmp_path):
     """bridge --listen, sim_robot --listen and --connect to the bridge, all with --secure:
     the bridge reaches RUNNING and policy commands reach the robot; teleop --secure is

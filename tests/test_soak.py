@@ -54,6 +54,7 @@ def test_a_deploy_tool_stops_cleanly_on_sigint_and_sigterm(sig):
     assert "bridge: state WAITING" in out  # the final summary: the finally block ran
 
 
+@pytest.mark.realtime
 def test_soak_short_form(tmp_path):
     """One minute of sim robot + bridge (the shipped caster policy) + random operator
     commands: the processes survive, the bridge answers the states with policy
@@ -73,6 +74,7 @@ def test_soak_short_form(tmp_path):
         assert (out / f"{name}.log").read_text().strip()
 
 
+@pytest.mark.realtime
 def test_starts_short_form(tmp_path):
     """Two bridge starts through the stand-up against a synthetic standing robot: each
     bridge exits 0 and either answers the stand-up and the policy and reaches RUNNING, or

@@ -14,7 +14,7 @@ motor-side watchdog (damping after ``--watchdog-ms`` without a valid LowCmd) are
 known here: the adapter never relies on it.
 
 With zenoh endpoints (``--listen`` / ``--connect``) it also publishes ``<ns>/sim/truth``
-(trunk position and velocity) for tests; it never publishes our state message: that is
+(trunk position and velocity, at most TRUTH_RATE_HZ) for tests; it never publishes our state message: that is
 the adapter's job.
 """
 
@@ -32,6 +32,9 @@ from legged_casters.deploy.sim_robot import SimRobot
 from legged_casters.robot import build
 
 LOOPBACK = ("lo", "lo0")
+TRUTH_RATE_HZ = 100.0
+"""The most <ns>/sim/truth messages per second (every LowState's at 500 Hz cost a tenth of a
+core in zenoh puts that only tests read)."""
 
 
 class FakeGo2(SimRobot):
@@ -48,6 +51,7 @@ class FakeGo2(SimRobot):
         self.bad_crc = 0
         self.lowstates = 0
         self.cmd_sender = P.Sender()
+        self.truth_every = max(1, round(1.0 / (self.dt * self.decimation * TRUTH_RATE_HZ)))
 
     def _publish(self, which: str, payload: bytes) -> None:
         if which == "truth" and self.publish_truth is not None:
@@ -83,6 +87,8 @@ class FakeGo2(SimRobot):
         self.map.write_state(self.low, s[self._quat], s[self._gyro], s[self._qs], s[self._dqs])
         self.low_pub.Write(self.low)
         self.lowstates += 1
+        if self.publish_truth is None or (self.lowstates - 1) % self.truth_every:
+            return
         h = self.truth_sender.next_header()
         h.stamp_ns = stamp_ns
         self._publish("truth", P.SimTruth(self.data.time, self.data.qpos[0:3], self.data.qvel[0:3], h).encode())

@@ -26,6 +26,7 @@ import importlib.util
 import struct
 import sys
 import types
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -111,27 +112,23 @@ def load_sdk() -> Sdk:
 _POLY = 0x04C11DB7
 
 
-def _table() -> list[int]:
-    table = []
-    for byte in range(256):
-        c = byte << 24
-        for _ in range(8):
-            c = ((c << 1) ^ _POLY) if c & 0x80000000 else (c << 1)
-        table.append(c & 0xFFFFFFFF)
-    return table
+_BITREV = bytes(int(f"{b:08b}"[::-1], 2) for b in range(256))
+"""Each byte with its bits in reverse order (a bytes.translate table)."""
 
 
-_TABLE = _table()
+def _crc32_mpeg2(data: bytes) -> int:
+    """CRC-32/MPEG-2 of bytes fed most significant bit first, in C (zlib): the reflected
+    CRC-32 that zlib computes, run over the bit-reversed bytes from the same initial value
+    and without its final xor, is this CRC's register bit-reversed. 2-3 us for a LowCmd,
+    against 300 us for a table-driven loop in Python, at 500 LowCmds per second on both
+    the adapter's and the fake Go2's side."""
+    reflected = zlib.crc32(data.translate(_BITREV)) ^ 0xFFFFFFFF
+    return int.from_bytes(reflected.to_bytes(4, "little").translate(_BITREV), "big")
 
 
 def crc32_words(words) -> int:
     """CRC-32/MPEG-2 of 32-bit words, each fed most significant byte (and bit) first."""
-    crc = 0xFFFFFFFF
-    t = _TABLE
-    for w in words:
-        for shift in (24, 16, 8, 0):
-            crc = ((crc << 8) & 0xFFFFFFFF) ^ t[((crc >> 24) ^ (w >> shift)) & 0xFF]
-    return crc
+    return _crc32_mpeg2(struct.pack(f">{len(words)}I", *words))
 
 
 # LowCmd_ as the robot's C struct lays it out (4-byte alignment, little-endian).
@@ -152,8 +149,8 @@ def lowcmd_bytes(cmd) -> bytes:
 
 def lowcmd_crc(cmd) -> int:
     raw = lowcmd_bytes(cmd)
-    words = struct.unpack(f"<{len(raw) // 4}I", raw)
-    return crc32_words(words[:-1])
+    # the words without the crc field, each little-endian word fed most significant byte first
+    return _crc32_mpeg2(np.frombuffer(raw, "<u4")[:-1].astype(">u4").tobytes())
 
 
 # --- joint mapping ------------------------------------------------------------------------
