@@ -22,6 +22,9 @@ class PolicyCfg:
     """(iteration, std) points: before each iteration the exploration std is set to their
     linear interpolation at the number of iterations done (held before the first point and
     after the last), e.g. [[1550, 0.2], [1750, 0.05]]. Needs learn_noise_std false. Empty: off."""
+    noise_std_schedule_joints: tuple[str, ...] = ()
+    """The action joints whose std the schedule sets: every joint whose name contains one of
+    these, e.g. ["thigh", "calf"]; the others keep the std they have. Empty: every joint."""
     obs_normalization: bool = True
     critic_history: bool = True
     """Whether the critic's MLP reads the actor's proprioceptive history (it has the privileged state)."""
@@ -157,6 +160,9 @@ class TrainCfg:
         }
         if p.noise_std_schedule:
             cfg["noise_std_schedule"] = self._noise_std_schedule()
+            cfg["noise_std_schedule_joints"] = list(p.noise_std_schedule_joints)
+        elif p.noise_std_schedule_joints:
+            raise ConfigError("policy.noise_std_schedule_joints needs a policy.noise_std_schedule")
         sym = self.symmetry
         if sym.mode != "none":
             cfg["algorithm"]["symmetry_cfg"] = {

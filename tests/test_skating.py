@@ -309,6 +309,35 @@ def test_the_noise_std_schedule_sets_each_iterations_std(tmp_path):
     e.close()
 
 
+def test_the_noise_std_schedule_can_leave_some_joints_alone(tmp_path):
+    """policy.noise_std_schedule_joints: the schedule sets the std of the named joints only
+    (thigh and calf here); the hips keep theirs. A name that matches no joint is refused."""
+    from legged_casters.learning.runner import CheckpointingRunner
+
+    e = registry.make_env(TASK, CPU, num_envs=4)
+    train_cfg = copy.deepcopy(registry.get_task(TASK).train_cfg)
+    train_cfg.policy.learn_noise_std = False
+    train_cfg.policy.init_noise_std = 0.5
+    train_cfg.policy.noise_std_schedule = ((0, 0.4), (2, 0.2))
+    train_cfg.policy.noise_std_schedule_joints = ("thigh", "calf")
+    cfg = train_cfg.for_env(e)
+    cfg["num_steps_per_env"] = 8
+    runner = CheckpointingRunner(e, cfg, log_dir=str(tmp_path / "a"), device="cpu", task=TASK)
+    runner.learn(num_learning_iterations=2)
+    std = runner.alg.get_policy().distribution.std_param.detach()
+    hips = torch.tensor(["hip" in j for j in e.layout.joints])
+    assert int(hips.sum()) == 4
+    assert torch.allclose(std[hips], torch.full((4,), 0.5))
+    assert torch.allclose(std[~hips], torch.full((8,), 0.2))
+    train_cfg.policy.noise_std_schedule_joints = ("knee",)
+    with pytest.raises(ConfigError, match="match none of the action joints"):
+        CheckpointingRunner(e, train_cfg.for_env(e), log_dir=str(tmp_path / "b"), device="cpu", task=TASK)
+    train_cfg.policy.noise_std_schedule = ()
+    with pytest.raises(ConfigError, match="needs a policy.noise_std_schedule"):
+        train_cfg.for_env(e)
+    e.close()
+
+
 def test_export_carries_the_prior_and_the_bridge_rebuilds_the_clock(tmp_path):
     e = registry.make_env(TASK, CPU, num_envs=2)
     actor = export.build_actor(e, registry.get_task(TASK).train_cfg)
