@@ -109,9 +109,6 @@ def load_sdk() -> Sdk:
 
 
 # --- CRC -------------------------------------------------------------------------------
-_POLY = 0x04C11DB7
-
-
 _BITREV = bytes(int(f"{b:08b}"[::-1], 2) for b in range(256))
 """Each byte with its bits in reverse order (a bytes.translate table)."""
 
