@@ -92,7 +92,18 @@ class TrainCfg:
     def for_env(self, env) -> dict:
         """to_rsl_rl() with what the env says about its actor (prior, observation columns)."""
         self._check_symmetry(env)
-        return self.to_rsl_rl(env.actor_prior(), env.policy_obs_columns())
+        cfg = self.to_rsl_rl(env.actor_prior(), env.policy_obs_columns())
+        if self.policy.noise_std_schedule_joints:
+            cfg["noise_std_schedule_dims"] = self._scheduled_dims(list(env.layout.joints))
+        return cfg
+
+    def _scheduled_dims(self, joints: list[str]) -> list[int]:
+        """policy.noise_std_schedule_joints -> the action dimensions the schedule sets."""
+        patterns = self.policy.noise_std_schedule_joints
+        unknown = [pat for pat in patterns if not any(pat in j for j in joints)]
+        if unknown:
+            raise ConfigError(f"policy.noise_std_schedule_joints: {unknown} match none of the action joints {joints}")
+        return [k for k, j in enumerate(joints) if any(pat in j for pat in patterns)]
 
     def _check_symmetry(self, env) -> None:
         mode = self.symmetry.mode
@@ -160,7 +171,6 @@ class TrainCfg:
         }
         if p.noise_std_schedule:
             cfg["noise_std_schedule"] = self._noise_std_schedule()
-            cfg["noise_std_schedule_joints"] = list(p.noise_std_schedule_joints)
         elif p.noise_std_schedule_joints:
             raise ConfigError("policy.noise_std_schedule_joints needs a policy.noise_std_schedule")
         sym = self.symmetry

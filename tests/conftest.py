@@ -36,7 +36,7 @@ def pytest_collection_modifyitems(config, items):
     real time against 30 ms staleness limits and 2 ms physics; on a shared 2-core virtual
     machine one scheduling stall of 30-60 ms (docs/deploy.md, "Timing") fails a try whatever
     the code does. A broken chain fails every try; each failed try is printed in the
-    "rerun" lines of the summary (-ra)."""
+    RERUN lines of the summary (-raR)."""
     for item in items:
         if item.get_closest_marker("realtime") or "realtime" in getattr(item, "fixturenames", ()):
             item.add_marker(pytest.mark.flaky(reruns=REALTIME_TRIES - 1, reruns_delay=1))

@@ -14,8 +14,8 @@ motor-side watchdog (damping after ``--watchdog-ms`` without a valid LowCmd) are
 known here: the adapter never relies on it.
 
 With zenoh endpoints (``--listen`` / ``--connect``) it also publishes ``<ns>/sim/truth``
-(trunk position and velocity, at most TRUTH_RATE_HZ) for tests; it never publishes our state message: that is
-the adapter's job.
+(trunk position and velocity, at most TRUTH_RATE_HZ) for tests; it never publishes our
+state message: that is the adapter's job.
 """
 
 from __future__ import annotations
@@ -87,7 +87,7 @@ class FakeGo2(SimRobot):
         self.map.write_state(self.low, s[self._quat], s[self._gyro], s[self._qs], s[self._dqs])
         self.low_pub.Write(self.low)
         self.lowstates += 1
-        if self.publish_truth is None or (self.lowstates - 1) % self.truth_every:
+        if self.publish_truth is None or self.lowstates % self.truth_every:
             return
         h = self.truth_sender.next_header()
         h.stamp_ns = stamp_ns

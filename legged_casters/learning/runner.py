@@ -12,7 +12,6 @@ import numpy as np
 import torch
 from rsl_rl.runners import OnPolicyRunner
 
-from legged_casters.config import ConfigError
 from legged_casters.tools import common
 from legged_casters.tools.common import CheckpointError
 
@@ -30,7 +29,7 @@ class CheckpointingRunner(OnPolicyRunner):
         self.task = task
         self.last_iteration_logged = False
         self.noise_std_schedule = [tuple(point) for point in train_cfg.get("noise_std_schedule") or ()]
-        self.noise_std_mask = self._scheduled_joints(env, train_cfg.get("noise_std_schedule_joints") or ())
+        self.noise_std_dims = train_cfg.get("noise_std_schedule_dims")  # None: every action dimension
         super().__init__(env, train_cfg, log_dir=log_dir, device=device)
         if self.noise_std_schedule:  # after each iteration's report, the std of the next one
             report = self.logger.log
@@ -48,32 +47,19 @@ class CheckpointingRunner(OnPolicyRunner):
         its, stds = zip(*self.noise_std_schedule, strict=True)
         return float(np.interp(done, its, stds))
 
-    @staticmethod
-    def _scheduled_joints(env, patterns) -> torch.Tensor | None:
-        """policy.noise_std_schedule_joints -> a mask over the action dimensions (None: all)."""
-        if not patterns:
-            return None
-        joints = list(env.layout.joints)
-        unknown = [pat for pat in patterns if not any(pat in j for j in joints)]
-        if unknown:
-            raise ConfigError(
-                f"policy.noise_std_schedule_joints: {unknown} match none of the action joints {joints}"
-            )
-        return torch.tensor([any(pat in j for pat in patterns) for j in joints])
-
     def set_noise_std(self, done: int) -> None:
         """policy.noise_std_schedule: the std of every action dimension (or of those that
-        policy.noise_std_schedule_joints names) set to the schedule's value."""
+        policy.noise_std_schedule_joints names: TrainCfg.for_env) set to the schedule's value."""
         std = self.noise_std_at(done)
         if std is None:
             return
         dist = self.alg.get_policy().distribution
         param, value = (dist.std_param, std) if hasattr(dist, "std_param") else (dist.log_std_param, math.log(std))
         with torch.no_grad():
-            if self.noise_std_mask is None:
+            if self.noise_std_dims is None:
                 param.fill_(value)
             else:
-                param[self.noise_std_mask.to(param.device)] = value
+                param[self.noise_std_dims] = value
 
     def learn(self, num_learning_iterations: int, init_at_random_ep_len: bool = False):
         self.set_noise_std(self.current_learning_iteration)
