@@ -25,6 +25,10 @@ class PolicyCfg:
     noise_std_schedule_joints: tuple[str, ...] = ()
     """The action joints whose std the schedule sets: every joint whose name contains one of
     these, e.g. ["thigh", "calf"]; the others keep the std they have. Empty: every joint."""
+    noise_correlation: float = field(default=0.0, metadata={"min": 0.0, "max": 0.999})
+    """Correlation in time of the exploration noise, per control step: 0 draws white noise
+    (rsl_rl's GaussianDistribution); rho > 0 draws it from an AR(1) process with the same
+    std (legged_casters.learning.noise), e.g. 0.9 for a time constant of about 10 steps."""
     obs_normalization: bool = True
     critic_history: bool = True
     """Whether the critic's MLP reads the actor's proprioceptive history (it has the privileged state)."""
@@ -169,6 +173,11 @@ class TrainCfg:
             },
             "algorithm": {"class_name": "rsl_rl.algorithms.PPO", **vars(self.algorithm)},
         }
+        if p.noise_correlation > 0.0:
+            cfg["actor"]["distribution_cfg"].update(
+                class_name="legged_casters.learning.noise.CorrelatedGaussianDistribution",
+                correlation=p.noise_correlation,
+            )
         if p.noise_std_schedule:
             cfg["noise_std_schedule"] = self._noise_std_schedule()
         elif p.noise_std_schedule_joints:

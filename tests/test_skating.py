@@ -309,6 +309,81 @@ def test_the_noise_std_schedule_sets_each_iterations_std(tmp_path):
     e.close()
 
 
+def _lag1(x: torch.Tensor) -> float:
+    """Lag-1 autocorrelation of (steps, batch, dims) samples around their known mean 0."""
+    return float((x[1:] * x[:-1]).mean() / (x * x).mean())
+
+
+def test_correlated_noise_keeps_the_marginal_and_correlates_the_rollout():
+    """policy.noise_correlation rho: rollout samples (no gradients) follow an AR(1) process with
+    the Gaussian's own mean and std and lag-1 correlation rho; PPO's mini-batch draws (gradients
+    on) are white and leave the process alone; rho 0 is white; rho outside [0, 1) is refused."""
+    from legged_casters.learning.noise import CorrelatedGaussianDistribution
+
+    torch.manual_seed(0)
+    mean, std = torch.full((2000, 3), 0.5), 0.2
+    out = {}
+    for rho in (0.0, 0.9):
+        dist = CorrelatedGaussianDistribution(3, correlation=rho, init_std=std, learn_std=False)
+        draws = []
+        for _ in range(200):
+            with torch.inference_mode():
+                dist.update(mean)
+                draws.append(dist.sample())
+        noise = (torch.stack(draws) - 0.5) / std
+        out[rho] = noise
+        assert float(noise.std()) == pytest.approx(1.0, abs=0.03)
+        assert float(noise.mean()) == pytest.approx(0.0, abs=0.02)
+    assert _lag1(out[0.0]) == pytest.approx(0.0, abs=0.02)
+    assert _lag1(out[0.9]) == pytest.approx(0.9, abs=0.02)
+
+    dist = CorrelatedGaussianDistribution(3, correlation=0.99, init_std=std, learn_std=False)
+    with torch.inference_mode():
+        dist.update(mean)
+        first = dist.sample()
+    state = dist._eps.clone()
+    batch = torch.zeros(64, 3, requires_grad=True)
+    dist.update(batch)
+    minibatch_draws = torch.stack([dist.sample() for _ in range(200)]) / std
+    assert abs(_lag1(minibatch_draws)) < 0.05  # white
+    assert torch.equal(dist._eps, state)  # the rollout's process untouched
+    with torch.inference_mode():
+        dist.update(mean)
+        second = dist.sample()
+    assert float(((second - 0.5) - 0.99 * (first - 0.5)).std() / std) < 0.2  # continues from `first`
+    for bad in (-0.1, 1.0):
+        with pytest.raises(ValueError, match="correlation"):
+            CorrelatedGaussianDistribution(3, correlation=bad)
+
+
+def test_noise_correlation_selects_the_correlated_distribution(tmp_path):
+    """--train-set policy.noise_correlation=0.9 trains with CorrelatedGaussianDistribution (the
+    checkpoint has the same keys as with white noise, so play/export/evaluate load it); above
+    the config's bound it is refused."""
+    from legged_casters.config import apply_overrides
+    from legged_casters.learning.noise import CorrelatedGaussianDistribution
+    from legged_casters.learning.runner import CheckpointingRunner
+
+    e = registry.make_env(TASK, CPU, num_envs=4)
+    keys = {}
+    for rho in (0.0, 0.9):
+        train_cfg = copy.deepcopy(registry.get_task(TASK).train_cfg)
+        train_cfg.policy.noise_correlation = rho
+        cfg = train_cfg.for_env(e)
+        cfg["num_steps_per_env"] = 4
+        runner = CheckpointingRunner(e, cfg, log_dir=str(tmp_path / str(rho)), device="cpu", task=TASK)
+        dist = runner.alg.get_policy().distribution
+        assert isinstance(dist, CorrelatedGaussianDistribution) is (rho > 0)
+        runner.learn(num_learning_iterations=1)
+        keys[rho] = set(runner.alg.get_policy().state_dict())
+        if rho > 0:
+            assert dist._eps is not None and dist._eps.shape == (4, e.num_actions)
+    assert keys[0.0] == keys[0.9]
+    with pytest.raises(ConfigError, match="noise_correlation"):
+        apply_overrides(copy.deepcopy(registry.get_task(TASK).train_cfg), ["policy.noise_correlation=1.0"])
+    e.close()
+
+
 def test_the_noise_std_schedule_can_leave_some_joints_alone(tmp_path):
     """policy.noise_std_schedule_joints: the schedule sets the std of the named joints only
     (thigh and calf here); the hips keep theirs. A name that matches no joint is refused."""
