@@ -283,3 +283,19 @@ def test_the_training_evaluation_pushes_robots_at_each_scenarios_interval():
     assert moved["often"] > 0.1 and moved["never"] < 0.2 * moved["often"], moved
     summary = E.summary(list(res.values()))
     assert summary["falls"] == sum(r.falls for r in res.values()) and "vx_error" not in summary
+    for r in res.values():  # each random scenario attributes its falls to pushes and new commands
+        assert 0 <= r.extra["falls_after_push"] <= r.falls and 0 <= r.extra["falls_after_cmd"] <= r.falls
+
+
+def test_falls_are_attributed_to_the_last_push_or_command_within_the_window():
+    """falls_after: a fall counts when the robot's last event at or before it is at most the
+    window earlier; earlier events, later events and no events do not count."""
+    from legged_casters.tools.evaluate import falls_after
+
+    assert falls_after([100], [60], 50) == 1  # 40 steps after a push
+    assert falls_after([100], [40], 50) == 0  # 60 steps after: too long ago
+    assert falls_after([100], [40, 120], 50) == 0  # the later event does not explain it
+    assert falls_after([100], [100], 50) == 1  # pushed on the step it fell
+    assert falls_after([100, 300], [90, 280], 50) == 2
+    assert falls_after([100, 300], [90], 50) == 1
+    assert falls_after([100], [], 50) == 0

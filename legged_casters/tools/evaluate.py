@@ -165,6 +165,9 @@ CMD_PROBE = 0.5
 """m/s added to the vx command to measure `est_cmd_gain`."""
 PUSH_VEL = 0.5
 """m/s: each push adds U(-PUSH_VEL, PUSH_VEL) to the trunk's vx and vy."""
+FALL_CAUSE_S = 1.0
+"""s: a fall in a random-command scenario counts as `falls_after_push` (`falls_after_cmd`)
+when it comes at most this long after the robot's last push (its last new command)."""
 
 
 EVAL_SETTINGS = {
@@ -302,6 +305,17 @@ def _schedule(scenarios, owner: list[int], steps: int, dt: float, ranges: dict, 
     return cmds, alive
 
 
+def falls_after(fall_steps: list[int], event_steps: list[int], window_steps: int) -> int:
+    """How many of one robot's falls (step indices) come at most `window_steps` after one of
+    its events (pushes or new commands, step indices, ascending) at or before the fall."""
+    count = 0
+    for f in fall_steps:
+        before = [e for e in event_steps if e <= f]
+        if before and f - before[-1] <= window_steps:
+            count += 1
+    return count
+
+
 def run_scenarios(
     env, policy: Policy, scenarios=QUICK, seed: int = 0, estimator=None, command_gain: bool = False
 ) -> list[ScenarioResult]:
@@ -341,8 +355,13 @@ def run_scenarios(
     if gain_log is not None:
         cmd_col, cmd_scale = env.policy_obs_slices()["commands"]  # the vx command's column and scale
     falls = torch.zeros(n, dtype=torch.long)
+    # per robot: the steps of its falls, pushes and new commands (fall attribution, FALL_CAUSE_S)
+    fall_steps, push_steps, cmd_steps = ([[] for _ in range(n)] for _ in range(3))
     for k in range(steps):
         cmd = cmds_all[k]
+        if k:
+            for j in (cmd != cmds_all[k - 1]).any(dim=1).nonzero().flatten().tolist():
+                cmd_steps[j].append(k)
         changed = not torch.equal(env.commands.cpu(), cmd)
         env.commands[:] = cmd.to(dev)
         if changed:  # the policy sees a new command at once, not one step late (history as in training)
@@ -353,6 +372,8 @@ def run_scenarios(
             qvel = env.sim.qvel[ids].clone()
             qvel[:, 0:2] += (torch.rand(len(ids), 2, generator=gen).to(dev) * 2 - 1) * PUSH_VEL
             env.sim.reset(ids, env.sim.qpos[ids].clone(), qvel)
+            for j in pushed.tolist():
+                push_steps[j].append(k)
         with torch.no_grad():
             actions = policy(obs)
             if est_log is not None:  # the estimate the actor used for this step's action
@@ -365,6 +386,8 @@ def run_scenarios(
         obs = env.step(actions)[0]
         fell = (env.terminated_buf & ~env.time_out_buf).cpu()
         falls += (fell & alive[k]).long()
+        for j in (fell & alive[k]).nonzero().flatten().tolist():
+            fall_steps[j].append(k)
         vel_log[k] = torch.cat([env.base_lin_vel[:, :2], env.base_ang_vel[:, 2:3]], dim=1).cpu()
         power_log[k] = env.positive_power().cpu()
         pos_log[k] = env.base_pos[:, :2].cpu()
@@ -382,6 +405,10 @@ def run_scenarios(
             r.mean[key] = float(v[..., a].mean())
             r.err[key] = float((v[..., a] - c[..., a]).abs().mean())
         r.falls = int(falls[cols].sum())
+        if s.random_commands:
+            window = int(round(FALL_CAUSE_S / env.dt))
+            r.extra["falls_after_push"] = sum(falls_after(fall_steps[j], push_steps[j], window) for j in cols)
+            r.extra["falls_after_cmd"] = sum(falls_after(fall_steps[j], cmd_steps[j], window) for j in cols)
         cmd = s.command(s.duration)
         if s.kind == "track" and cmd[0] != 0.0 and cmd[1] == 0.0 and cmd[2] == 0.0:
             r.extra["cot"] = cost_of_transport(env, power_log[k0:k1, cols[0]], pos_log[k0:k1, cols[0]])
