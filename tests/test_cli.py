@@ -589,3 +589,17 @@ def test_kill_stops_training_like_ctrl_c(tmp_path):
         out = "".join(lines) + proc.stdout.read()
         assert proc.wait(60) == 130, out[-2000:]
         assert "interrupted; newest checkpoint" in out and "--resume --load_run" in out
+
+
+@needs_caster
+def test_play_tells_a_time_limit_reset_from_a_fall(tmp_path):
+    """A reset at the episode's time limit is not a fall: the data marks it (time_out) and the
+    summary line counts it apart; the standing zero policy never falls."""
+    argv = ["--task", CASTER, "--policy", "zero", "--profile", "constant", "--duration", "0.5", "--num_envs", "1"]
+    argv += ["--set", "episode_length_s=0.2", "--headless", "--no_video", "--out", str(tmp_path)]
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert play.main(argv) == 0, buf.getvalue()
+    data = np.load(tmp_path / "zero_constant_data.npz")
+    assert data["done"].sum() == 2 and np.array_equal(data["time_out"], data["done"])
+    assert "robot 0 resets 2 (0 falls, 2 at the episode's time limit)" in buf.getvalue()
