@@ -44,25 +44,14 @@ class CorrelatedGaussianDistribution(GaussianDistribution):
         self.correlation = float(correlation)
         self._eps: torch.Tensor | None = None
 
-    def reset_noise(self) -> None:
-        """Forget the process: the next rollout sample starts from its stationary distribution."""
-        self._eps = None
-
     def sample(self) -> torch.Tensor:
+        if torch.is_grad_enabled() or self.correlation == 0.0:  # PPO's mini-batches, or white noise
+            return super().sample()
         dist = self._distribution
         if dist is None:
             raise RuntimeError("sample() before update(): the distribution has no mean yet")
-        mean, std = dist.mean, dist.stddev
-        rollout = not torch.is_grad_enabled()
-        with torch.no_grad():
-            fresh = torch.randn_like(mean)
-            if not rollout or self.correlation == 0.0:
-                return mean + std * fresh
-            prev = self._eps
-            if prev is None or prev.shape != mean.shape:
-                eps = fresh
-            else:
-                rho = self.correlation
-                eps = rho * prev + math.sqrt(1.0 - rho * rho) * fresh
-            self._eps = eps
-            return mean + std * eps
+        fresh = torch.randn_like(dist.mean)
+        prev, rho = self._eps, self.correlation
+        same = prev is not None and prev.shape == fresh.shape
+        self._eps = rho * prev + math.sqrt(1.0 - rho * rho) * fresh if same else fresh
+        return dist.mean + dist.stddev * self._eps

@@ -354,14 +354,10 @@ def run_scenarios(
     gain_log = torch.zeros(steps, n) if estimator is not None and command_gain else None
     if gain_log is not None:
         cmd_col, cmd_scale = env.policy_obs_slices()["commands"]  # the vx command's column and scale
-    falls = torch.zeros(n, dtype=torch.long)
-    # per robot: the steps of its falls, pushes and new commands (fall attribution, FALL_CAUSE_S)
-    fall_steps, push_steps, cmd_steps = ([[] for _ in range(n)] for _ in range(3))
+    fall_log = torch.zeros(steps, n, dtype=torch.bool)  # counted falls (fall attribution: FALL_CAUSE_S)
+    push_log = torch.zeros(steps, n, dtype=torch.bool)
     for k in range(steps):
         cmd = cmds_all[k]
-        if k:
-            for j in (cmd != cmds_all[k - 1]).any(dim=1).nonzero().flatten().tolist():
-                cmd_steps[j].append(k)
         changed = not torch.equal(env.commands.cpu(), cmd)
         env.commands[:] = cmd.to(dev)
         if changed:  # the policy sees a new command at once, not one step late (history as in training)
@@ -372,8 +368,7 @@ def run_scenarios(
             qvel = env.sim.qvel[ids].clone()
             qvel[:, 0:2] += (torch.rand(len(ids), 2, generator=gen).to(dev) * 2 - 1) * PUSH_VEL
             env.sim.reset(ids, env.sim.qpos[ids].clone(), qvel)
-            for j in pushed.tolist():
-                push_steps[j].append(k)
+            push_log[k, pushed] = True
         with torch.no_grad():
             actions = policy(obs)
             if est_log is not None:  # the estimate the actor used for this step's action
@@ -384,16 +379,20 @@ def run_scenarios(
                 shifted["policy"][:, cmd_col] += CMD_PROBE * cmd_scale
                 gain_log[k] = (estimator(shifted).cpu()[:, 0] - est[:, 0]) / CMD_PROBE
         obs = env.step(actions)[0]
-        fell = (env.terminated_buf & ~env.time_out_buf).cpu()
-        falls += (fell & alive[k]).long()
-        for j in (fell & alive[k]).nonzero().flatten().tolist():
-            fall_steps[j].append(k)
+        fall_log[k] = (env.terminated_buf & ~env.time_out_buf).cpu() & alive[k]
         vel_log[k] = torch.cat([env.base_lin_vel[:, :2], env.base_ang_vel[:, 2:3]], dim=1).cpu()
         power_log[k] = env.positive_power().cpu()
         pos_log[k] = env.base_pos[:, :2].cpu()
         yaw_log[k] = yaw_from_quat(env.base_quat).cpu()
         if swivel_log is not None:
             swivel_log[k] = env.swivel_vel.cpu()
+    falls = fall_log.sum(dim=0)
+    cmd_log = torch.zeros(steps, n, dtype=torch.bool)  # a new command at step k (from the schedule)
+    cmd_log[1:] = (cmds_all[1:] != cmds_all[:-1]).any(dim=2)
+
+    def steps_of(log: torch.Tensor, j: int) -> list[int]:
+        return log[:, j].nonzero().flatten().tolist()
+
     results = []
     for i, s in enumerate(scenarios):
         cols = [j for j, o in enumerate(owner) if o == i]
@@ -407,8 +406,8 @@ def run_scenarios(
         r.falls = int(falls[cols].sum())
         if s.random_commands:
             window = int(round(FALL_CAUSE_S / env.dt))
-            r.extra["falls_after_push"] = sum(falls_after(fall_steps[j], push_steps[j], window) for j in cols)
-            r.extra["falls_after_cmd"] = sum(falls_after(fall_steps[j], cmd_steps[j], window) for j in cols)
+            for name, log in (("falls_after_push", push_log), ("falls_after_cmd", cmd_log)):
+                r.extra[name] = sum(falls_after(steps_of(fall_log, j), steps_of(log, j), window) for j in cols)
         cmd = s.command(s.duration)
         if s.kind == "track" and cmd[0] != 0.0 and cmd[1] == 0.0 and cmd[2] == 0.0:
             r.extra["cot"] = cost_of_transport(env, power_log[k0:k1, cols[0]], pos_log[k0:k1, cols[0]])

@@ -217,9 +217,9 @@ def write_plots(data: dict[str, np.ndarray], out: Path, prefix: str, title: str,
         ax.set_ylabel(f"{label} [{unit}]")
         ax.grid(alpha=0.3)
     axes[0].legend(loc="upper right", fontsize=8)
-    falls = (data["done"] > 0) & ~(data.get("time_out", np.zeros_like(data["done"])) > 0)
-    limits = int((data["done"] > 0).sum() - falls.sum())
-    why = [w for w, n in (("fell", int(falls.sum())), ("reached the episode's time limit", limits)) if n]
+    limits = int(data["time_out"].sum())
+    falls = int(data["done"].sum()) - limits
+    why = [w for w, n in (("fell", falls), ("reached the episode's time limit", limits)) if n]
     resets = f" (grey: robot 0 {' / '.join(why)} and was reset)" if why else ""
     axes[0].set_title(f"{title}: commanded vs measured (trunk frame, robot 0){resets}", fontsize=10)
     axes[-1].set_xlabel("time [s]")
@@ -448,7 +448,7 @@ def _run(args, src: PolicySource, env, policy, profile: Profile, headless: bool,
         viewer.cam.distance = 2.0
 
     rec = Recorder()
-    resets, time_limits, reset_any = 0, 0, False
+    resets, reset_any = 0, False
     wall0 = time.time()
     try:
         for k in range(steps):
@@ -463,8 +463,6 @@ def _run(args, src: PolicySource, env, policy, profile: Profile, headless: bool,
                 actions = policy(obs)
             obs, _, dones, _ = env.step(actions)
             resets += int(dones[0])
-            time_limit = bool(dones[0]) and bool(env.time_out_buf[0])  # the episode's time limit, not a fall
-            time_limits += int(time_limit)
             reset_any = bool(dones.any())
             row = {
                 "t": t + dt,
@@ -476,7 +474,7 @@ def _run(args, src: PolicySource, env, policy, profile: Profile, headless: bool,
                 "actions": env.actions[0].cpu().numpy(),
                 "base_pos": env.base_pos[0].cpu().numpy(),
                 "done": float(dones[0]),
-                "time_out": float(time_limit),
+                "time_out": float(dones[0] and env.time_out_buf[0]),  # the episode's time limit, not a fall
             }
             if mode is not None:
                 row["mode"] = np.asarray(mode[1], dtype=float)
@@ -514,6 +512,7 @@ def _run(args, src: PolicySource, env, policy, profile: Profile, headless: bool,
     if renderer is not None:
         paths.insert(0, video_path)
     err = np.abs(data["measured"] - data["command"]).mean(axis=0)
+    time_limits = int(data["time_out"].sum())
     print(
         f"[{PROG}] {src.task} ({src.label}) profile {profile.name}: {len(data['t'])} steps ({profile.duration:.1f} s "
         f"simulated in {time.time() - wall0:.1f} s), robot 0 resets {resets} "
