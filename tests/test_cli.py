@@ -603,3 +603,75 @@ def test_play_tells_a_time_limit_reset_from_a_fall(tmp_path):
     data = np.load(tmp_path / "zero_constant_data.npz")
     assert data["done"].sum() == 2 and np.array_equal(data["time_out"], data["done"])
     assert "robot 0 resets 2 (0 falls, 2 at the episode's time limit)" in buf.getvalue()
+
+
+def _verdict_of(out: str) -> tuple[str, list[str]]:
+    """'X/Y' and the measured values of the FAIL lines of one evaluate.py output."""
+    passed = out.split("verdict: ")[1].split(" checks")[0]
+    fails = [line.rsplit("(measured ", 1)[1].rstrip(")") for line in out.splitlines() if line.startswith("FAIL  ")]
+    return passed, fails
+
+
+def test_evaluate_ranks_checkpoints_as_each_evaluates_alone(run):
+    """evaluate.py --checkpoints: each checkpoint's line agrees with `--checkpoint N` alone
+    (checks passed, the failed checks' measurements), the table is ordered by falls, then
+    checks passed, then the newest, and 'all' lists every saved checkpoint once."""
+    from legged_casters.tools import evaluate
+
+    root, run_dir, _, _, _ = run
+    base = ["--log_root", str(root), "--load_run", str(run_dir), "--scenarios", "quick"]
+
+    def ev(*argv):
+        buf = io.StringIO()
+        with contextlib.redirect_stdout(buf):
+            rc = evaluate.main([*base, *argv])
+        return rc, buf.getvalue()
+
+    rc, ranked = ev("--checkpoints", "3,1,3")
+    assert rc == 0, ranked
+    table = [line for line in ranked.splitlines() if line.startswith("| ") and "model_" in line]
+    assert len(table) == 2  # 3 given twice: evaluated once
+    rows = {}
+    for line in table:
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        rows[cells[1]] = (int(cells[0]), int(cells[2]), cells[3], int(cells[4]), cells[5])
+    for it in (1, 3):
+        rc, alone = ev("--checkpoint", str(it))
+        assert rc == 0, alone
+        passed, fails = _verdict_of(alone)
+        _, iteration, r_passed, _, failed = rows[f"model_{it}.pt"]
+        assert (iteration, r_passed) == (it, passed)
+        got = [] if failed == "-" else failed.split("; ")
+        assert len(got) == len(fails) and all(g.endswith(" " + f) for g, f in zip(got, fails, strict=True))
+    order = sorted(rows.values(), key=lambda r: r[0])
+    keys = [(r[3], -int(r[2].split("/")[0]), -r[1]) for r in order]
+    assert keys == sorted(keys)
+    assert "first by this evaluation: " + min(rows, key=lambda k: rows[k][0]) in ranked
+
+    rc, everything = ev("--checkpoints", "all")
+    assert rc == 0, everything
+    listed = [
+        line.split(" ")[2]
+        for line in everything.splitlines()
+        if line.startswith("[evaluate.py] ") and "/" in line.split(" ")[1]
+    ]
+    saved = sorted((p.name for p in run_dir.glob("model_*.pt")), key=lambda n: (n == "model_best.pt", len(n), n))
+    assert listed == saved
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--checkpoints", "two"], "'two' is neither an iteration, 'best' nor 'all'"),
+        (["--checkpoints", ",,"], "give iterations and 'best'"),
+        (["--checkpoints", "99"], "not found in"),
+        (["--checkpoints", "1", "--checkpoint", "2"], "leave out --checkpoint"),
+        (["--checkpoints", "1", "--sim2sim"], "leave out --sim2sim"),
+    ],
+)
+def test_evaluate_checkpoints_bad_input_exits_2(run, capsys, argv, message):
+    from legged_casters.tools import evaluate
+
+    root, run_dir, _, _, _ = run
+    assert evaluate.main(["--log_root", str(root), "--load_run", str(run_dir), *argv]) == 2
+    assert message in capsys.readouterr().err

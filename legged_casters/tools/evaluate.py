@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import math
 import sys
 import time
@@ -643,6 +644,12 @@ def build_parser() -> argparse.ArgumentParser:
         "action for the mirrored observation): a diagnostic, docs/tasks.md",
     )
     p.add_argument(
+        "--checkpoints",
+        metavar="LIST",
+        help="rank several checkpoints of the run through the scenarios: a comma list of iterations and 'best' "
+        "(500,750,best), or 'all' (every model_<it>.pt and model_best.pt); ordered by falls, then checks passed",
+    )
+    p.add_argument(
         "--sim2sim",
         action="store_true",
         help="the checks under each condition of SIM2SIM (5 ms, 2 ms, latency, noise, IMU bias) and their change "
@@ -670,7 +677,117 @@ def load_exported(path: Path, task_arg: str | None):
     return exp.task, exp.spec, exp.env_cfg, policy, f"{file}", exp.obs_dim
 
 
+def ranked_checkpoints(run_dir: Path, spec: str) -> list[Path]:
+    """--checkpoints LIST -> checkpoint files of run_dir, in the order given ('all': every
+    model_<it>.pt oldest first, then model_best.pt if the run has one); duplicates once."""
+    items = [s.strip() for s in spec.split(",") if s.strip()]
+    if not items:
+        raise UsageError("--checkpoints: give iterations and 'best' separated by commas, or 'all'")
+    paths = []
+    for item in items:
+        if item == "all":
+            paths += [p for _, p in common.checkpoints(run_dir)]
+            best = run_dir / "model_best.pt"
+            paths += [best] if best.is_file() else []
+        elif item.isdigit() or item == "best":
+            paths.append(common.find_checkpoint(run_dir, item))
+        else:
+            raise UsageError(f"--checkpoints: {item!r} is neither an iteration, 'best' nor 'all'")
+    if not paths:
+        raise UsageError(f"--checkpoints {spec}: run {run_dir} has no checkpoint")
+    unique = list(dict.fromkeys(p.resolve() for p in paths))
+    return unique
+
+
+def rank(args: argparse.Namespace, default_log_root: Path | None) -> int:
+    """--checkpoints: every listed checkpoint through the same scenarios (a fresh env each, so
+    each result is the one `--checkpoint N` gives), one line each as it goes, then a table
+    ordered by falls (fewest first), then checks passed (most first), then iteration."""
+    from legged_casters.tools.export import load_actor
+
+    for flag in ("policy", "checkpoint"):
+        if getattr(args, flag):
+            raise UsageError(f"--checkpoints ranks checkpoints of a run: leave out --{flag}")
+    if args.symmetrise and args.stochastic:
+        raise UsageError("--symmetrise runs the deterministic actor; leave out --stochastic")
+    if args.sim2sim:
+        raise UsageError("--checkpoints runs one condition: leave out --sim2sim (give --physics-dt etc. instead)")
+    sel = common.select_checkpoint(args, default_log_root)  # the run, its task and configs
+    paths = ranked_checkpoints(sel.run_dir, args.checkpoints)
+    scenarios = applicable(SCENARIO_SETS[args.scenarios], sel.spec.env_class, sel.env_cfg)
+    cond = condition_overrides(sel.env_cfg, args.physics_dt, args.action_latency_ms, args.noise, args.imu_bias)
+    cond_name = ", ".join(f"{k}={v}" for k, v in cond.items()) or "training conditions"
+    print(f"[{PROG}] run {sel.run_dir}: {len(paths)} checkpoints, {len(scenarios)} scenarios, {cond_name}")
+    rows = []
+    for i, path in enumerate(paths, 1):
+        t0 = time.time()
+        ckpt = common.load_checkpoint(path)
+        env = sel.spec.env_class(eval_env_cfg(sel.env_cfg, scenarios, condition=cond))
+        try:
+            actor = load_actor(env, sel.train_cfg, ckpt, path)
+            policy = functools.partial(actor, stochastic_output=bool(args.stochastic))
+            run = symmetrised(policy, env) if args.symmetrise else policy
+            results = run_scenarios(env, run, scenarios, estimator=actor_estimator(actor), command_gain=True)
+        finally:
+            env.close()
+        checks = verdict(results, sel.task)
+        falls = sum(r.falls for r in results)
+        failed = [f"{_check_label(c)} {v}" for c, ok, v in checks if not ok]
+        row = {
+            "file": path.name, "iteration": _iterations_done(path, ckpt), "passed": sum(ok for _, ok, _ in checks),
+            "checks": len(checks), "falls": falls, "failed": failed,
+        }  # fmt: skip
+        rows.append(row)
+        print(
+            f"[{PROG}] {i}/{len(paths)} {row['file']} (iteration {row['iteration']}): {row['passed']}/{row['checks']} "
+            f"checks, {falls} falls ({time.time() - t0:.0f} s)",
+            flush=True,
+        )
+    print()
+    print(format_ranking(rows))
+    top = min(rows, key=_rank_key)
+    print(f"\n[{PROG}] first by this evaluation: {top['file']} (iteration {top['iteration']}): "
+          f"{top['passed']}/{top['checks']} checks, {top['falls']} falls")  # fmt: skip
+    return common.EXIT_OK
+
+
+def _iterations_done(path: Path, ckpt: dict) -> int:
+    """Iterations trained: the N of model_<N>.pt, else (model_best.pt) the checkpoint's own
+    count, which rsl_rl stores as the index of its last iteration (N - 1)."""
+    m = common.CHECKPOINT_RE.match(path.name)
+    return int(m.group(1)) if m else int(ckpt.get("iter", -2)) + 1
+
+
+def _check_label(check: str) -> str:
+    """A verdict check's short name: 'vx +0.5', 'front_wheel swivel', 'estimator RMS error'."""
+    head, _, rest = check.partition(": ")
+    if not rest:
+        return check.split(" <=")[0]
+    if head in ("front_wheel", "rear_wheel"):
+        return f"{head} {'swivel' if 'swivel' in rest else 'vx'}"
+    if head == "vy slalom":
+        return f"{head} {'swing' if 'swing' in rest else 'heading'}"
+    return head
+
+
+def _rank_key(row: dict) -> tuple:
+    return (row["falls"], -row["passed"], -row["iteration"])
+
+
+def format_ranking(rows: list[dict]) -> str:
+    lines = ["| rank | checkpoint | iteration | checks passed | falls (all scenarios) | failed checks |",
+             "|---:|---|---:|---:|---:|---|"]  # fmt: skip
+    for k, r in enumerate(sorted(rows, key=_rank_key), 1):
+        failed = "; ".join(r["failed"]) or "-"
+        lines.append(
+            f"| {k} | {r['file']} | {r['iteration']} | {r['passed']}/{r['checks']} | {r['falls']} | {failed} |"
+        )
+    return "\n".join(lines)
+
+
 def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
+    if args.checkpoints:
+        return rank(args, default_log_root)
     given = Path(args.policy).expanduser() if args.policy else None
     if given is not None and given.suffix == ".pt" and given.is_file() and common.is_training_checkpoint(given):
         if args.load_run or args.checkpoint:
