@@ -84,7 +84,7 @@ def rollout(
                 cmd, mask, torch.sin(phase), gait.FOOT_XY, gait._SIDE, gait._FRONT,
                 per_leg["tilt"], amp, per_leg["thigh_share"], g.full_speed, per_leg["lateral_gain"],
                 torch.zeros(n, 3), 0.0, 0.0, 0.0, torch.zeros(n, 2), 0.0, 1.0,
-                torch.zeros(0, 2), torch.zeros(0, 2), per_leg["tilt"],
+                torch.zeros(0, 2), torch.zeros(0, 2), per_leg["tilt"], torch.zeros(n), 0.0, 1.0,
             )  # fmt: skip
             _, _, dones, _ = env.step(offsets / env.cfg.control.action_scale)
             phase = torch.remainder(phase + 2 * math.pi * freq * env.dt, 2 * math.pi)

@@ -202,10 +202,11 @@ def test_clock_phase_advances_with_policy_steps_and_restarts_with_the_episode(en
     assert env.compute_observations()["policy"][1, sl].tolist() == pytest.approx([0.0, 1.0])
 
 
-@pytest.mark.parametrize("variant", ["plain", "uphill", "law"])
+@pytest.mark.parametrize("variant", ["plain", "uphill", "law", "yaw"])
 def test_the_actor_computes_the_same_prior_from_its_observation(env, variant):
     # The actor reads the (noisy) observation, the env its own state: compare without noise.
     env.cfg.gait.uphill_gain, env.cfg.gait.uphill_deadband = (8.0, 0.0) if variant == "uphill" else (0.0, 0.06)
+    env.cfg.gait.yaw_feedback, env.cfg.gait.yaw_command_share = (1.0, 0.5) if variant == "yaw" else (0.0, 1.0)
     if variant == "law":
         env.cfg.gait.amplitude_law, env.cfg.gait.amplitude_law_backward = LAW, LAW_BACK
         env.cfg.gait.tilt_backward = 0.25
@@ -226,6 +227,7 @@ def test_the_actor_computes_the_same_prior_from_its_observation(env, variant):
     finally:
         env.cfg.gait.uphill_gain, env.cfg.gait.uphill_deadband = 0.0, 0.06
         env.cfg.gait.amplitude_law, env.cfg.gait.amplitude_law_backward, env.cfg.gait.tilt_backward = [], [], None
+        env.cfg.gait.yaw_feedback, env.cfg.gait.yaw_command_share = 0.0, 1.0
         env.noise_vec.copy_(noise)
 
 

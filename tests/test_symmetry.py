@@ -79,10 +79,12 @@ def test_gait_prior_is_mirror_equivariant():
     mask = (torch.rand(n, 4, generator=gen) < 0.3).float()
     vel = (torch.rand(n, 3, generator=gen) - 0.5) * 3.0
     sin_phase = torch.rand(n, generator=gen) * 2 - 1
-    cfg = GaitPriorCfg(enabled=True, tilt=0.2, tilt_backward=0.3, speed_feedback=1.0, command_share=0.3)
-    out = gait_prior(cfg, cmd, mask, sin_phase, velocity=vel)
+    yaw = (torch.rand(n, generator=gen) - 0.5) * 3.0  # the gyro's yaw rate: flips in the mirror image
+    cfg = GaitPriorCfg(enabled=True, tilt=0.2, tilt_backward=0.3, speed_feedback=1.0, command_share=0.3,
+                       yaw_feedback=1.0, yaw_command_share=0.5)  # fmt: skip
+    out = gait_prior(cfg, cmd, mask, sin_phase, velocity=vel, yaw_rate=yaw)
     cmd_m, mask_m, vel_m = _mirror_prior_inputs(cmd, mask, vel)
-    out_m = gait_prior(cfg, cmd_m, mask_m, sin_phase, velocity=vel_m)
+    out_m = gait_prior(cfg, cmd_m, mask_m, sin_phase, velocity=vel_m, yaw_rate=-yaw)
     torch.testing.assert_close(out_m, mirror(out, torch.tensor(index), torch.tensor(sign)), atol=1e-6, rtol=0)
 
 

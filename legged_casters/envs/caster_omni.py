@@ -251,13 +251,14 @@ class CasterOmniEnv(LeggedEnv):
         return {
             "kind": "gait",
             "cfg": dict(vars(self.cfg.gait)),
-            "slices": {k: slices[k] for k in ("commands", "mode_mask", "gait_phase", "projected_gravity")},
+            "slices": {k: slices[k] for k in ("commands", "mode_mask", "gait_phase", "projected_gravity", "ang_vel")},
             "action_scale": self.cfg.control.action_scale,
         }
 
     def gait_offsets(self) -> torch.Tensor:
         """The prior's joint-target offsets (num_envs, 12), rad (zero when it is off). With
-        speed feedback it reads the simulator's trunk velocity (the actor reads its estimate)."""
+        speed feedback it reads the simulator's trunk velocity (the actor reads its estimate),
+        with yaw feedback the trunk's yaw rate (the actor reads its gyro observation)."""
         if not self.cfg.gait.enabled:
             return torch.zeros(self.num_envs, self.num_actions, device=self.device)
         return gait_prior(
@@ -267,6 +268,7 @@ class CasterOmniEnv(LeggedEnv):
             torch.sin(self.gait_phase),
             self.projected_gravity,
             self.base_lin_vel,
+            self.base_ang_vel[:, 2],
         )
 
     def _post_physics_step(self) -> None:

@@ -22,6 +22,11 @@ deployed policy can compute it from what it observes:
   the robot accelerates to one speed whatever it is told; with it the push follows
   the speed error, reverses to brake when the robot is too fast, and fades as the
   robot reaches the command.
+* Yaw-rate feedback (`yaw_feedback` k_w > 0, off by default): the turning part of each
+  foot's push (w x r) uses c_w w_cmd + k_w (w_cmd - w_imu), w_imu the trunk's yaw rate from
+  the IMU's gyro (the actor's `ang_vel` observation), so the prior turns harder while the
+  robot turns slower than told and less when it turns faster. Unlike the trunk velocity,
+  the yaw rate is measured, not estimated.
 * A speed law (`amplitude_law`, off by default): the oscillation amplitude for the
   trunk's forward or backward push is read from a measured table of open-loop speed
   against amplitude (scripts/prior_law.py) instead of growing to its full value at
@@ -84,6 +89,12 @@ class GaitPriorCfg:
     command_share: float = field(default=1.0, metadata={"min": 0.0})
     """Share of the commanded planar velocity in the push velocity (the feedforward);
     only used with speed_feedback > 0."""
+    yaw_feedback: float = field(default=0.0, metadata={"min": 0.0})
+    """Gain k_w of the yaw-rate error in the turning push (see the module text); 0: the
+    prior turns for the command alone. Reads the gyro's yaw rate (the ang_vel observation)."""
+    yaw_command_share: float = field(default=1.0, metadata={"min": 0.0})
+    """Share of the commanded yaw rate in the turning push (the feedforward); only used with
+    yaw_feedback > 0."""
     amplitude_law: list[list[float]] = field(default_factory=list)
     """[[speed m/s, amplitude rad], ...], speeds ascending: the oscillation amplitude for a
     forward push of the trunk at that speed (|vx| of the push velocity), interpolated
@@ -161,15 +172,23 @@ def _prior(
     law_fwd: torch.Tensor,
     law_back: torch.Tensor,
     tilt_backward: float,
+    yaw_rate: torch.Tensor,
+    yaw_feedback: float,
+    yaw_command_share: float,
 ) -> torch.Tensor:
     # The planar velocity to push for: the command, or with speed feedback its share plus
     # k times the error of the velocity estimate (n, 2); velocity is unused without it.
     push = commands[:, 0:2]
     if speed_feedback > 0.0:
         push = command_share * push + speed_feedback * (push - velocity[:, 0:2])
+    # The yaw rate to turn for: the command, or with yaw feedback its share plus k_w times
+    # the gyro's error (n, 1); yaw_rate is unused without it.
+    turn = commands[:, 2:3]
+    if yaw_feedback > 0.0:
+        turn = yaw_command_share * turn + yaw_feedback * (turn - yaw_rate.reshape(-1, 1))
     # Each foot's planar velocity to push for, v + w x r (trunk frame), (n, 4) per axis.
-    vx = push[:, 0:1] - commands[:, 2:3] * foot_xy[:, 1]
-    vy = push[:, 1:2] + commands[:, 2:3] * foot_xy[:, 0]
+    vx = push[:, 0:1] - turn * foot_xy[:, 1]
+    vy = push[:, 1:2] + turn * foot_xy[:, 0]
     speed = torch.sqrt(vx * vx + vy * vy + 1e-12)
     ramp = (speed / full_speed).clamp(max=1.0)
     ux, uy = vx / speed.clamp(min=1e-6), vy / speed.clamp(min=1e-6)
@@ -209,6 +228,7 @@ def gait_prior(
     sin_phase: torch.Tensor,
     gravity: torch.Tensor | None = None,
     velocity: torch.Tensor | None = None,
+    yaw_rate: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Joint-target offsets (n, 12) in rad, go2.ACTUATED_JOINTS order.
 
@@ -216,8 +236,13 @@ def gait_prior(
     caster must not oscillate; sin_phase (n,): sine of the clock phase; gravity (n, 3):
     the projected gravity (unit, trunk frame), needed when cfg.uphill_gain > 0;
     velocity (n, >= 2): the trunk's planar velocity (m/s, trunk frame), needed when
-    cfg.speed_feedback > 0."""
+    cfg.speed_feedback > 0; yaw_rate (n,): the trunk's yaw rate (rad/s, the gyro's z),
+    needed when cfg.yaw_feedback > 0."""
     dev = commands.device
+    if yaw_rate is None:
+        if cfg.yaw_feedback > 0.0:
+            raise ValueError("gait.yaw_feedback needs the trunk's yaw rate")
+        yaw_rate = torch.zeros(commands.shape[0], device=dev)
     if velocity is None:
         if cfg.speed_feedback > 0.0:
             raise ValueError("gait.speed_feedback needs the trunk velocity")
@@ -233,6 +258,7 @@ def gait_prior(
         gravity, cfg.uphill_gain, cfg.uphill_deadband, cfg.max_amplitude,
         velocity, cfg.speed_feedback, cfg.command_share,
         law_fwd.to(dev), law_back.to(dev), cfg.backward_tilt(),
+        yaw_rate, cfg.yaw_feedback, cfg.yaw_command_share,
     )  # fmt: skip
 
 
@@ -240,8 +266,8 @@ class GaitPrior(torch.nn.Module):
     """The prior inside the actor: raw policy observation (n, dim) and the actor's
     velocity estimate (n, >= 2; any (n, 0) tensor without speed feedback) -> prior action
     (n, 12) in action units. `slices` gives (start, scale) of the observation terms
-    commands, mode_mask and gait_phase, and projected_gravity for the uphill term (the
-    layout is the env's). Scriptable."""
+    commands, mode_mask and gait_phase, projected_gravity for the uphill term and ang_vel
+    for the yaw feedback (the layout is the env's). Scriptable."""
 
     def __init__(self, cfg: dict, slices: dict[str, list[float]], action_scale: float):
         super().__init__()
@@ -260,6 +286,11 @@ class GaitPrior(torch.nn.Module):
             raise ValueError("a gait prior with uphill_gain needs the projected_gravity observation slice")
         grav = slices.get("projected_gravity", [0, 1.0])
         self.grav_start, self.grav_scale = int(grav[0]), float(grav[1])
+        self.yaw_feedback, self.yaw_command_share = float(c.yaw_feedback), float(c.yaw_command_share)
+        if self.yaw_feedback > 0.0 and "ang_vel" not in slices:
+            raise ValueError("a gait prior with yaw_feedback needs the ang_vel observation slice")
+        gyro = slices.get("ang_vel", [0, 1.0])
+        self.yaw_col, self.gyro_scale = int(gyro[0]) + 2, float(gyro[1])  # z of (roll, pitch, yaw) rates
         self.cmd_start, self.cmd_scale = int(slices["commands"][0]), float(slices["commands"][1])
         self.mask_start, self.mask_scale = int(slices["mode_mask"][0]), float(slices["mode_mask"][1])
         self.phase_start, self.phase_scale = int(slices["gait_phase"][0]), float(slices["gait_phase"][1])
@@ -273,12 +304,14 @@ class GaitPrior(torch.nn.Module):
         mask = obs[:, self.mask_start : self.mask_start + 4] / self.mask_scale
         sin_phase = obs[:, self.phase_start] / self.phase_scale
         gravity = obs[:, self.grav_start : self.grav_start + 3] / self.grav_scale
+        yaw_rate = obs[:, self.yaw_col] / self.gyro_scale
         offsets = _prior(
             commands, mask, sin_phase, self.foot_xy, self.side, self.front,
             self.tilt, self.amplitude, self.thigh_share, self.full_speed, self.lateral_gain,
             gravity, self.uphill_gain, self.uphill_deadband, self.max_amplitude,
             velocity, self.speed_feedback, self.command_share,
             self.law_fwd, self.law_back, self.tilt_backward,
+            yaw_rate, self.yaw_feedback, self.yaw_command_share,
         )  # fmt: skip
         return offsets / self.action_scale
 
