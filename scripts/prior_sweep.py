@@ -28,7 +28,6 @@ import torch
 from legged_casters import registry
 from legged_casters.tools import evaluate
 
-
 TURN = tuple(
     evaluate.Scenario(name, ((0.0, cmd),), 8.0, 3.0)
     for name, cmd in (
