@@ -14,8 +14,8 @@ train.py runs every few iterations (TensorBoard `Eval/...`).
 from __future__ import annotations
 
 import argparse
+import bisect
 import contextlib
-import functools
 import math
 import sys
 import time
@@ -311,9 +311,8 @@ def falls_after(fall_steps: list[int], event_steps: list[int], window_steps: int
     its events (pushes or new commands, step indices, ascending) at or before the fall."""
     count = 0
     for f in fall_steps:
-        before = [e for e in event_steps if e <= f]
-        if before and f - before[-1] <= window_steps:
-            count += 1
+        k = bisect.bisect_right(event_steps, f)  # events at or before the fall: event_steps[:k]
+        count += k > 0 and f - event_steps[k - 1] <= window_steps
     return count
 
 
@@ -677,6 +676,27 @@ def load_exported(path: Path, task_arg: str | None):
     return exp.task, exp.spec, exp.env_cfg, policy, f"{file}", exp.obs_dim
 
 
+def checkpoint_policy(actor, stochastic: bool) -> Policy:
+    """A training actor as a policy (TensorDict obs -> actions: its mean, or sampled with its
+    noise), carrying the actor's velocity estimate as `.estimate` (None without one)."""
+    policy = lambda obs: actor(obs, stochastic_output=stochastic)  # noqa: E731
+    policy.estimate = actor_estimator(actor)
+    return policy
+
+
+def single_condition(args: argparse.Namespace, env_cfg) -> tuple[str, dict]:
+    """(name, overrides) of the one condition --physics-dt/--action-latency-ms/--noise/--imu-bias give."""
+    cond = condition_overrides(env_cfg, args.physics_dt, args.action_latency_ms, args.noise, args.imu_bias)
+    return ", ".join(f"{k}={v}" for k, v in cond.items()) or "training conditions", cond
+
+
+def run_policy(env, policy: Policy, scenarios, symmetrise: bool) -> list[ScenarioResult]:
+    """run_scenarios for the CLI: the policy (made symmetric with --symmetrise), its estimate
+    (`policy.estimate`, if it has one) and the estimate's command gain."""
+    run = symmetrised(policy, env) if symmetrise else policy
+    return run_scenarios(env, run, scenarios, estimator=getattr(policy, "estimate", None), command_gain=True)
+
+
 def ranked_checkpoints(run_dir: Path, spec: str) -> list[Path]:
     """--checkpoints LIST -> checkpoint files of run_dir, in the order given ('all': every
     model_<it>.pt oldest first, then model_best.pt if the run has one); duplicates once."""
@@ -695,8 +715,7 @@ def ranked_checkpoints(run_dir: Path, spec: str) -> list[Path]:
             raise UsageError(f"--checkpoints: {item!r} is neither an iteration, 'best' nor 'all'")
     if not paths:
         raise UsageError(f"--checkpoints {spec}: run {run_dir} has no checkpoint")
-    unique = list(dict.fromkeys(p.resolve() for p in paths))
-    return unique
+    return list(dict.fromkeys(p.resolve() for p in paths))
 
 
 def rank(args: argparse.Namespace, default_log_root: Path | None) -> int:
@@ -708,15 +727,12 @@ def rank(args: argparse.Namespace, default_log_root: Path | None) -> int:
     for flag in ("policy", "checkpoint"):
         if getattr(args, flag):
             raise UsageError(f"--checkpoints ranks checkpoints of a run: leave out --{flag}")
-    if args.symmetrise and args.stochastic:
-        raise UsageError("--symmetrise runs the deterministic actor; leave out --stochastic")
     if args.sim2sim:
         raise UsageError("--checkpoints runs one condition: leave out --sim2sim (give --physics-dt etc. instead)")
     sel = common.select_checkpoint(args, default_log_root)  # the run, its task and configs
     paths = ranked_checkpoints(sel.run_dir, args.checkpoints)
     scenarios = applicable(SCENARIO_SETS[args.scenarios], sel.spec.env_class, sel.env_cfg)
-    cond = condition_overrides(sel.env_cfg, args.physics_dt, args.action_latency_ms, args.noise, args.imu_bias)
-    cond_name = ", ".join(f"{k}={v}" for k, v in cond.items()) or "training conditions"
+    cond_name, cond = single_condition(args, sel.env_cfg)
     print(f"[{PROG}] run {sel.run_dir}: {len(paths)} checkpoints, {len(scenarios)} scenarios, {cond_name}")
     rows = []
     for i, path in enumerate(paths, 1):
@@ -724,10 +740,8 @@ def rank(args: argparse.Namespace, default_log_root: Path | None) -> int:
         ckpt = common.load_checkpoint(path)
         env = sel.spec.env_class(eval_env_cfg(sel.env_cfg, scenarios, condition=cond))
         try:
-            actor = load_actor(env, sel.train_cfg, ckpt, path)
-            policy = functools.partial(actor, stochastic_output=bool(args.stochastic))
-            run = symmetrised(policy, env) if args.symmetrise else policy
-            results = run_scenarios(env, run, scenarios, estimator=actor_estimator(actor), command_gain=True)
+            policy = checkpoint_policy(load_actor(env, sel.train_cfg, ckpt, path), bool(args.stochastic))
+            results = run_policy(env, policy, scenarios, args.symmetrise)
         finally:
             env.close()
         checks = verdict(results, sel.task)
@@ -786,6 +800,8 @@ def format_ranking(rows: list[dict]) -> str:
 
 
 def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
+    if args.symmetrise and args.stochastic:
+        raise UsageError("--symmetrise runs the deterministic actor; leave out --stochastic")
     if args.checkpoints:
         return rank(args, default_log_root)
     given = Path(args.policy).expanduser() if args.policy else None
@@ -824,13 +840,9 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
             probe = spec.env_class(eval_env_cfg(env_cfg, QUICK[:1]))
             actor = load_actor(probe, sel.train_cfg, sel.ckpt, sel.ckpt_path)
             probe.close()
-            stochastic = bool(args.stochastic)
-            policy = lambda obs: actor(obs, stochastic_output=stochastic)  # noqa: E731
-            policy.estimate = actor_estimator(actor)
-            label = f"{sel.ckpt_path}" + (" (stochastic)" if stochastic else "")
+            policy = checkpoint_policy(actor, bool(args.stochastic))
+            label = f"{sel.ckpt_path}" + (" (stochastic)" if args.stochastic else "")
     if args.symmetrise:
-        if args.stochastic:
-            raise UsageError("--symmetrise runs the deterministic actor; leave out --stochastic")
         label += " (symmetrised)"
     scenarios = applicable(SCENARIO_SETS[args.scenarios], spec.env_class, env_cfg)
     if args.sim2sim:
@@ -840,8 +852,7 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
             )
         conditions = [(name, condition_overrides(env_cfg, **kw)) for name, kw in SIM2SIM]
     else:
-        cond = condition_overrides(env_cfg, args.physics_dt, args.action_latency_ms, args.noise, args.imu_bias)
-        conditions = [(", ".join(f"{k}={v}" for k, v in cond.items()) or "training conditions", cond)]
+        conditions = [single_condition(args, env_cfg)]
     rows = []
     for name, cond in conditions:
         env = spec.env_class(eval_env_cfg(env_cfg, scenarios, condition=cond))
@@ -854,8 +865,7 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
         print(f"[{PROG}] {label}: task {task}, {len(scenarios)} scenarios on {env.num_envs} envs; {name}")
         t0 = time.time()
         try:
-            run = symmetrised(policy, env) if args.symmetrise else policy
-            results = run_scenarios(env, run, scenarios, estimator=getattr(policy, "estimate", None), command_gain=True)
+            results = run_policy(env, policy, scenarios, args.symmetrise)
         finally:
             env.close()
         print(format_table(results))
