@@ -195,12 +195,13 @@ def test_speed_set_checks_slalom_ramp_and_sweep_bars():
     assert not checks["estimator RMS error <= 0.1 m/s (worst flat scenario)"]
 
 
-def test_the_shipped_estimator_policy_loads_everywhere_and_estimates_its_speed():
+@pytest.mark.parametrize("name", ["caster_omni_speed", "caster_omni_anneal"])
+def test_the_shipped_estimator_policy_loads_everywhere_and_estimates_its_speed(name):
     from legged_casters.deploy.policy import load_meta
     from legged_casters.tools import common
     from legged_casters.tools import evaluate as ev
 
-    shipped = common.SHIPPED_POLICIES / "caster_omni_speed"
+    shipped = common.SHIPPED_POLICIES / name
     meta = load_meta(shipped)  # the bridge accepts it
     assert meta.task == TASK and meta.history_length == 10
     task, spec, env_cfg, policy, _, dim = ev.load_exported(shipped, None)
