@@ -483,34 +483,30 @@ def table2(out: Path, quick: bool) -> Result:
     from legged_casters.tools.cot import ROBOTS, measure
 
     duration, settle = (6.0, 3.0) if quick else (12.0, 4.0)
-    rows, measured = [], {}
-    for _, task, robot, paper in ROBOTS:
-        path = common.shipped_policy_dir(task)
-        if path is None:
-            rows.append(Row(f"Table II {robot}", f"COT {paper}", "no shipped policy", "-"))
-            continue
-        m = measure(path, 1.0, duration, settle)
-        measured[task] = m
-        ours = f"COT {m['cot']:.3f} at {m['speed']:.2f} m/s, {m['power']:.1f} W, falls {m['falls']}"
-        how = f"{task} shipped policy, 1.0 m/s command, flat ground, {settle:.0f}-{duration:.0f} s"
-        rows.append(Row(f"Table II {robot}", f"COT {paper}", ours, how))
-    if "go2_flat" in measured and "caster_omni" in measured:
-        change = 100 * (measured["caster_omni"]["cot"] / measured["go2_flat"]["cot"] - 1)
-        rows.append(Row("Table II casters vs trot", "-89.1 %", f"{change:+.1f} %", "same run, same measure"))
-    caster_paper = {task: paper for _, task, _, paper in ROBOTS}[DEFAULT_CASTER]
-    for policy in SPEED_POLICIES:
+    measured: dict[str, dict] = {}
+
+    def cot_row(policy: str, name: str, paper: float) -> Row:
         path = common.shipped_policy_dir(policy)
         if path is None:
-            continue
-        m = measure(path, 1.0, duration, settle)
-        rows.append(Row(_label("Table II passive casters", policy), f"COT {caster_paper}",
-                        f"COT {m['cot']:.3f} at {m['speed']:.2f} m/s, {m['power']:.1f} W, falls {m['falls']}",
-                        f"{policy} shipped policy, 1.0 m/s command, flat ground, "
-                        f"{settle:.0f}-{duration:.0f} s"))  # fmt: skip
-        if "go2_flat" in measured:
-            change = 100 * (m["cot"] / measured["go2_flat"]["cot"] - 1)
-            rows.append(Row(_label("Table II casters vs trot", policy), "-89.1 %", f"{change:+.1f} %",
-                            "same measure, the trot of the row above"))  # fmt: skip
+            return Row(name, f"COT {paper}", "no shipped policy", "-")
+        m = measured[policy] = measure(path, 1.0, duration, settle)
+        ours = f"COT {m['cot']:.3f} at {m['speed']:.2f} m/s, {m['power']:.1f} W, falls {m['falls']}"
+        how = f"{policy} shipped policy, 1.0 m/s command, flat ground, {settle:.0f}-{duration:.0f} s"
+        return Row(name, f"COT {paper}", ours, how)
+
+    def against_trot(policy: str, how: str) -> list[Row]:
+        if "go2_flat" not in measured or policy not in measured:
+            return []
+        change = 100 * (measured[policy]["cot"] / measured["go2_flat"]["cot"] - 1)
+        return [Row(_label("Table II casters vs trot", policy), "-89.1 %", f"{change:+.1f} %", how)]
+
+    rows = [cot_row(task, f"Table II {robot}", paper) for _, task, robot, paper in ROBOTS]
+    rows += against_trot(DEFAULT_CASTER, "same run, same measure")
+    caster_paper = {task: paper for _, task, _, paper in ROBOTS}[DEFAULT_CASTER]
+    for policy in SPEED_POLICIES:
+        if common.shipped_policy_dir(policy) is not None:
+            rows.append(cot_row(policy, _label("Table II passive casters", policy), caster_paper))
+            rows += against_trot(policy, "same measure, the trot of the row above")
     caster = ""
     if "caster_omni" in measured:
         times = measured["caster_omni"]["cot"] / caster_paper
