@@ -508,8 +508,8 @@ def table2(out: Path, quick: bool) -> Result:
             rows.append(cot_row(policy, _label("Table II passive casters", policy), caster_paper))
             rows += against_trot(policy, "same measure, the trot of the row above")
     caster = ""
-    if "caster_omni" in measured:
-        times = measured["caster_omni"]["cot"] / caster_paper
+    if DEFAULT_CASTER in measured:
+        times = measured[DEFAULT_CASTER]["cot"] / caster_paper
         caster = f"our skating policy spends {times:.1f} times the paper's caster COT with a yaw drift and a 2 Hz sway "
     return Result(
         "table2",
