@@ -287,6 +287,32 @@ def test_the_training_evaluation_pushes_robots_at_each_scenarios_interval():
         assert 0 <= r.extra["falls_after_push"] <= r.falls and 0 <= r.extra["falls_after_cmd"] <= r.falls
 
 
+def test_evaluation_seed_redraws_random_commands_and_pushes():
+    """evaluate.py --seed: the same seed gives the same random scenario (commands and pushes),
+    another seed another one; run_policy (the CLI's path) passes the seed on."""
+    from legged_casters.tools import evaluate as E
+
+    spec = registry.get_task("caster_omni")
+    cfg, _ = registry.task_configs("caster_omni", [])
+    pushed = E.Scenario("pushed", ((0.0, (0.0, 0.0, 0.0)),), 2.0, 0.0, copies=2, random_commands=True,
+                        kind="random", push_interval=0.5)  # fmt: skip
+    env = spec.env_class(E.eval_env_cfg(cfg, (pushed,)))
+    try:
+        stand = lambda obs: torch.zeros(env.num_envs, 12)  # noqa: E731
+        runs = {
+            "0": E.run_scenarios(env, stand, (pushed,)),
+            "0 again": E.run_policy(env, stand, (pushed,), symmetrise=False, seed=0),
+            "1": E.run_policy(env, stand, (pushed,), symmetrise=False, seed=1),
+        }
+    finally:
+        env.close()
+    (a,), (b,), (c,) = runs["0"], runs["0 again"], runs["1"]
+    assert a.err == b.err and a.mean == b.mean
+    assert a.err != c.err
+    args = E.build_parser().parse_args(["--seed", "3"])
+    assert args.seed == 3 and E.build_parser().parse_args([]).seed == 0
+
+
 def test_falls_are_attributed_to_the_last_push_or_command_within_the_window():
     """falls_after: a fall counts when the robot's last event at or before it is at most the
     window earlier; earlier events, later events and no events do not count."""

@@ -637,6 +637,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--noise", action="store_true", help="with the training's observation noise")
     p.add_argument("--imu-bias", action="store_true", help="with a constant IMU bias per robot (IMU_BIAS)")
     p.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="seed of the random commands and pushes of the random-command scenarios (default 0: the numbers the "
+        "docs quote); another seed redraws them, to see how much a fall count owes to the draw",
+    )
+    p.add_argument(
         "--symmetrise",
         action="store_true",
         help="run the policy made exactly left-right symmetric (the mean of its action and the mirror image of its "
@@ -690,11 +697,16 @@ def single_condition(args: argparse.Namespace, env_cfg) -> tuple[str, dict]:
     return ", ".join(f"{k}={v}" for k, v in cond.items()) or "training conditions", cond
 
 
-def run_policy(env, policy: Policy, scenarios, symmetrise: bool) -> list[ScenarioResult]:
+def _seed_note(args: argparse.Namespace) -> str:
+    """', seed N' for the progress lines when --seed is not the default 0."""
+    return f", seed {args.seed}" if args.seed else ""
+
+
+def run_policy(env, policy: Policy, scenarios, symmetrise: bool, seed: int = 0) -> list[ScenarioResult]:
     """run_scenarios for the CLI: the policy (made symmetric with --symmetrise), its estimate
-    (`policy.estimate`, if it has one) and the estimate's command gain."""
+    (`policy.estimate`, if it has one) and the estimate's command gain; `seed`: --seed."""
     run = symmetrised(policy, env) if symmetrise else policy
-    return run_scenarios(env, run, scenarios, estimator=getattr(policy, "estimate", None), command_gain=True)
+    return run_scenarios(env, run, scenarios, seed=seed, estimator=getattr(policy, "estimate", None), command_gain=True)
 
 
 def ranked_checkpoints(run_dir: Path, spec: str) -> list[Path]:
@@ -733,7 +745,10 @@ def rank(args: argparse.Namespace, default_log_root: Path | None) -> int:
     paths = ranked_checkpoints(sel.run_dir, args.checkpoints)
     scenarios = applicable(SCENARIO_SETS[args.scenarios], sel.spec.env_class, sel.env_cfg)
     cond_name, cond = single_condition(args, sel.env_cfg)
-    print(f"[{PROG}] run {sel.run_dir}: {len(paths)} checkpoints, {len(scenarios)} scenarios, {cond_name}")
+    print(
+        f"[{PROG}] run {sel.run_dir}: {len(paths)} checkpoints, {len(scenarios)} scenarios, {cond_name}"
+        f"{_seed_note(args)}"
+    )
     rows = []
     for i, path in enumerate(paths, 1):
         t0 = time.time()
@@ -741,7 +756,7 @@ def rank(args: argparse.Namespace, default_log_root: Path | None) -> int:
         env = sel.spec.env_class(eval_env_cfg(sel.env_cfg, scenarios, condition=cond))
         try:
             policy = checkpoint_policy(load_actor(env, sel.train_cfg, ckpt, path), bool(args.stochastic))
-            results = run_policy(env, policy, scenarios, args.symmetrise)
+            results = run_policy(env, policy, scenarios, args.symmetrise, args.seed)
         finally:
             env.close()
         checks = verdict(results, sel.task)
@@ -862,10 +877,13 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
                 f"{label} expects {dim} observations; task {task} as configured gives "
                 f"{env.observation_dims()['policy']}"
             )
-        print(f"[{PROG}] {label}: task {task}, {len(scenarios)} scenarios on {env.num_envs} envs; {name}")
+        print(
+            f"[{PROG}] {label}: task {task}, {len(scenarios)} scenarios on {env.num_envs} envs; {name}"
+            f"{_seed_note(args)}"
+        )
         t0 = time.time()
         try:
-            results = run_policy(env, policy, scenarios, args.symmetrise)
+            results = run_policy(env, policy, scenarios, args.symmetrise, args.seed)
         finally:
             env.close()
         print(format_table(results))
@@ -874,7 +892,10 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
         print()
         for check, ok, value in checks:
             print(f"{'PASS' if ok else 'FAIL'}  {check}  (measured {value})")
-        print(f"\n[{PROG}] verdict: {passed}/{len(checks)} checks passed ({time.time() - t0:.0f} s); {name}")
+        print(
+            f"\n[{PROG}] verdict: {passed}/{len(checks)} checks passed ({time.time() - t0:.0f} s); {name}"
+            f"{_seed_note(args)}"
+        )
         rows.append((name, results, checks))
     if len(rows) > 1:
         print()
