@@ -299,14 +299,11 @@ def test_evaluation_seed_redraws_random_commands_and_pushes():
     env = spec.env_class(E.eval_env_cfg(cfg, (pushed,)))
     try:
         stand = lambda obs: torch.zeros(env.num_envs, 12)  # noqa: E731
-        runs = {
-            "0": E.run_scenarios(env, stand, (pushed,)),
-            "0 again": E.run_policy(env, stand, (pushed,), symmetrise=False, seed=0),
-            "1": E.run_policy(env, stand, (pushed,), symmetrise=False, seed=1),
-        }
+        (a,) = E.run_scenarios(env, stand, (pushed,))
+        (b,) = E.run_policy(env, stand, (pushed,), symmetrise=False, seed=0)
+        (c,) = E.run_policy(env, stand, (pushed,), symmetrise=False, seed=1)
     finally:
         env.close()
-    (a,), (b,), (c,) = runs["0"], runs["0 again"], runs["1"]
     assert a.err == b.err and a.mean == b.mean
     assert a.err != c.err
     args = E.build_parser().parse_args(["--seed", "3"])

@@ -694,11 +694,11 @@ def checkpoint_policy(actor, stochastic: bool) -> Policy:
 def single_condition(args: argparse.Namespace, env_cfg) -> tuple[str, dict]:
     """(name, overrides) of the one condition --physics-dt/--action-latency-ms/--noise/--imu-bias give."""
     cond = condition_overrides(env_cfg, args.physics_dt, args.action_latency_ms, args.noise, args.imu_bias)
-    return ", ".join(f"{k}={v}" for k, v in cond.items()) or "training conditions", cond
+    return (", ".join(f"{k}={v}" for k, v in cond.items()) or "training conditions") + _seed_note(args), cond
 
 
 def _seed_note(args: argparse.Namespace) -> str:
-    """', seed N' for the progress lines when --seed is not the default 0."""
+    """', seed N' for a condition's name when --seed is not the default 0."""
     return f", seed {args.seed}" if args.seed else ""
 
 
@@ -745,10 +745,7 @@ def rank(args: argparse.Namespace, default_log_root: Path | None) -> int:
     paths = ranked_checkpoints(sel.run_dir, args.checkpoints)
     scenarios = applicable(SCENARIO_SETS[args.scenarios], sel.spec.env_class, sel.env_cfg)
     cond_name, cond = single_condition(args, sel.env_cfg)
-    print(
-        f"[{PROG}] run {sel.run_dir}: {len(paths)} checkpoints, {len(scenarios)} scenarios, {cond_name}"
-        f"{_seed_note(args)}"
-    )
+    print(f"[{PROG}] run {sel.run_dir}: {len(paths)} checkpoints, {len(scenarios)} scenarios, {cond_name}")
     rows = []
     for i, path in enumerate(paths, 1):
         t0 = time.time()
@@ -865,7 +862,7 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
             raise UsageError(
                 "--sim2sim runs its own conditions: leave out --physics-dt, --action-latency-ms, --noise, --imu-bias"
             )
-        conditions = [(name, condition_overrides(env_cfg, **kw)) for name, kw in SIM2SIM]
+        conditions = [(name + _seed_note(args), condition_overrides(env_cfg, **kw)) for name, kw in SIM2SIM]
     else:
         conditions = [single_condition(args, env_cfg)]
     rows = []
@@ -877,10 +874,7 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
                 f"{label} expects {dim} observations; task {task} as configured gives "
                 f"{env.observation_dims()['policy']}"
             )
-        print(
-            f"[{PROG}] {label}: task {task}, {len(scenarios)} scenarios on {env.num_envs} envs; {name}"
-            f"{_seed_note(args)}"
-        )
+        print(f"[{PROG}] {label}: task {task}, {len(scenarios)} scenarios on {env.num_envs} envs; {name}")
         t0 = time.time()
         try:
             results = run_policy(env, policy, scenarios, args.symmetrise, args.seed)
@@ -892,10 +886,7 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
         print()
         for check, ok, value in checks:
             print(f"{'PASS' if ok else 'FAIL'}  {check}  (measured {value})")
-        print(
-            f"\n[{PROG}] verdict: {passed}/{len(checks)} checks passed ({time.time() - t0:.0f} s); {name}"
-            f"{_seed_note(args)}"
-        )
+        print(f"\n[{PROG}] verdict: {passed}/{len(checks)} checks passed ({time.time() - t0:.0f} s); {name}")
         rows.append((name, results, checks))
     if len(rows) > 1:
         print()
