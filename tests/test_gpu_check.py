@@ -139,6 +139,21 @@ def test_log_parsers_match_the_tools():
     assert "verdict: {passed}/{len(checks)} checks passed" in (REPO / "legged_casters/tools/evaluate.py").read_text()
 
 
+def test_report_reprints_the_first_gpu_run():
+    """`gpu.py report` on the JSON returned by the first H200 run (docs/gpu_check/)
+    prints exactly the table that run returned, so older results stay readable."""
+    results = json.loads((REPO / "docs/gpu_check/2026-12-04_h200.json").read_text())
+    returned = (REPO / "docs/gpu_check/2026-12-04_h200.txt").read_text()
+    assert gpu_check.summary_table(results).strip() == returned.strip()
+    # a parity run outside its bounds names how many robots and where, when the JSON says so
+    par = results["stages"]["parity"]["result"]["runs"][1]
+    assert not par["within_bounds"]
+    par.update(worlds_outside=17, worst_dof="FL_caster_wheel_joint (robot 8)")
+    line = next(x for x in gpu_check.summary_table(results).splitlines() if x.startswith("parity (64 envs"))
+    where = "(17 of 64 robots; largest qvel difference: FL_caster_wheel_joint (robot 8))"
+    assert line.endswith(f"OUTSIDE the test's bounds {where}")
+
+
 # --- which packages travel ------------------------------------------------------------------------
 def test_closure_follows_extras_and_markers():
     requires = {

@@ -89,6 +89,8 @@ def test_cpu_warp_parity(model):
     assert err["finite"]
     for name, bound in BOUNDS.items():
         assert err[name] < bound, f"{name}: |warp - cpu| up to {err[name]:.2e}, bound {bound:.0e}"
+    assert err["worlds_outside"] == 0
+    assert err["worst_dof"].endswith(")") and "robot " in err["worst_dof"]
 
 
 @pytest.mark.parametrize("kind", BACKENDS)

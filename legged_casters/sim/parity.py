@@ -62,7 +62,9 @@ def parity_errors(
     """Roll both backends from the same perturbed stand (seed 0) with the same random
     targets (seed 3); return the largest |difference| of each measure in BOUNDS, plus
     `moved` (how far the C trajectory's joints went: the robots are not standing still),
-    `finite` (both trajectories finite) and `contact_overflow` (Warp's buffers ran out)."""
+    `finite` (both trajectories finite), `contact_overflow` (Warp's buffers ran out),
+    `worlds_outside` (how many of the n robots exceed any bound) and `worst_dof` (the
+    joint whose velocity differs most, with the robot it does so in)."""
     qpos, qvel = perturbed_stand(model, n, seed=0)
     targets = random_targets(steps, n, std, seed=3)
     cpu = make_backend("cpu", model, n, DECIMATION)
@@ -78,6 +80,21 @@ def parity_errors(
         warp.close()
     qa = joint_addresses(model, go2.ACTUATED_JOINTS, "q")
     va = joint_addresses(model, go2.ACTUATED_JOINTS, "v")
+    dq, dv = (qc - qw).abs(), (vc - vw).abs()
+    per_world = {  # (n,) largest difference of each measure in each robot
+        "trunk_pos": dq[:, :, 0:3].amax(dim=(0, 2)),
+        "trunk_quat": dq[:, :, 3:7].amax(dim=(0, 2)),
+        "joint_pos": dq[:, :, qa].amax(dim=(0, 2)),
+        "joint_vel": dv[:, :, va].amax(dim=(0, 2)),
+        "qpos": dq.amax(dim=(0, 2)),
+        "qvel": dv.amax(dim=(0, 2)),
+    }
+    outside = torch.zeros(n, dtype=torch.bool)
+    for name, bound in BOUNDS.items():
+        outside |= per_world[name] >= bound
+    world = int(per_world["qvel"].argmax())
+    dof = int(dv[:, world].amax(dim=0).argmax())
+    joint = int(model.dof_jntid[dof])
     return {
         "trunk_pos": float((qc[:, :, 0:3] - qw[:, :, 0:3]).abs().max()),
         "trunk_quat": float((qc[:, :, 3:7] - qw[:, :, 3:7]).abs().max()),
@@ -88,4 +105,6 @@ def parity_errors(
         "moved": float((qc[:, :, qa] - qc[0, :, qa]).abs().max()),
         "finite": bool(torch.isfinite(qc).all() and torch.isfinite(qw).all()),
         "contact_overflow": overflow,
+        "worlds_outside": int(outside.sum()),
+        "worst_dof": f"{model.joint(joint).name} (robot {world})",
     }

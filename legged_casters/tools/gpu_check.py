@@ -909,7 +909,10 @@ def summary_table(results: dict) -> str:
         for run in par.get("runs", []):
             errs = ", ".join(f"{k} {run[k]:.1e}" for k in par.get("bounds", {}))
             ok = "within" if run["within_bounds"] else "OUTSIDE"
-            lines.append(f"parity ({run['num_envs']} envs, {par['steps']} steps): {errs}: {ok} the test's bounds")
+            n, where = run["num_envs"], ""
+            if "worlds_outside" in run and not run["within_bounds"]:
+                where = f" ({run['worlds_outside']} of {n} robots; largest qvel difference: {run['worst_dof']})"
+            lines.append(f"parity ({n} envs, {par['steps']} steps): {errs}: {ok} the test's bounds{where}")
 
     ov = stages.get("overflow", {}).get("result") or {}
     if ov:
