@@ -221,8 +221,75 @@ def test_sim2sim_conditions_keep_the_control_period():
         E.condition_overrides(cfg, latency_ms=30.0)
     base = E.ScenarioResult("vx +0.5", "track", (0.5, 0.0, 0.0), {}, {"vx": 0.1, "vy": 0.05, "wz": 0.2})
     worse = E.ScenarioResult("vx +0.5", "track", (0.5, 0.0, 0.0), {}, {"vx": 0.3, "vy": 0.05, "wz": 0.1}, falls=1)
-    table = E.format_sim2sim([("5 ms", [base], [("c", True, "x")]), ("latency", [worse], [("c", False, "y")])])
+    table = E.format_sim2sim(
+        [("5 ms", [base], [("c", True, "x")], {0: 0}), ("latency", [worse], [("c", False, "y")], {0: 1})]
+    )
     assert "| latency | 0/1 | 1 | +0.200 (vx +0.5 vx) | -0.100 (vx +0.5 wz) |" in table
+
+
+def test_sim2sim_tolerance_and_seeds():
+    """--seeds: parsed as lists and ranges; the falls table sums every seed; the tolerance
+    table (issue 23's bar) takes the verdict's error checks only, m/s and rad/s apart, and
+    says no for a change beyond its bound or for more falls over the seeds."""
+    from legged_casters.tools import evaluate as E
+    from legged_casters.tools.common import UsageError
+
+    assert E.parse_seeds("0-4") == [0, 1, 2, 3, 4]
+    assert E.parse_seeds("0,3,7") == [0, 3, 7]
+    assert E.parse_seeds("5, 1-2,2") == [5, 1, 2]
+    for bad in ("a", "3-1", "-1", "", "1,,2"):
+        with pytest.raises(UsageError, match="--seeds"):
+            E.parse_seeds(bad)
+
+    def checks(vx, wz, est, step_s):
+        return [
+            ("vx +0.5: |vx error| <= 0.15", True, f"{vx:.3f}"),
+            ("wz +0.8: |wz error| <= 0.25", True, f"{wz:.3f}"),
+            ("fig6 step: vx changes sign within 1.5 s", True, f"{step_s:.2f} s"),  # a time, not an error
+            ("estimator RMS error <= 0.1 m/s (worst flat scenario)", False, f"{est:.3f}"),
+            ("front_wheel: masked/driven swivel RMS <= 0.2", False, "0.90"),  # a ratio, not an error
+        ]
+
+    rows = [
+        ("5 ms", [], checks(0.10, 0.20, 0.20, 1.0), {0: 1, 1: 0}),
+        ("2 ms", [], checks(0.14, 0.29, 0.18, 0.2), {0: 0, 1: 1}),  # +0.04 m/s, +0.09 rad/s, 1 fall: within
+        ("estimator", [], checks(0.10, 0.20, 0.26, 1.0), {0: 0, 1: 0}),  # estimator +0.06 m/s: outside
+        ("turn", [], checks(0.10, 0.32, 0.20, 1.0), {0: 0, 1: 0}),  # +0.12 rad/s: outside
+        ("falls", [], checks(0.10, 0.20, 0.20, 1.0), {0: 1, 1: 1}),  # 2 falls against 1: outside
+    ]
+    table = E.format_tolerance(rows, 2).splitlines()
+    assert table[0].startswith("sim-to-sim tolerance: every error check within 0.05 m/s (0.1 rad/s for wz)")
+    assert "| 2 ms | +0.040 (vx +0.5) | +0.090 (wz +0.8) | 1 | yes |" in table
+    assert "| estimator | +0.060 (estimator RMS error) | +0.000 (-) | 0 | no |" in table
+    assert "| turn | +0.000 (-) | +0.120 (wz +0.8) | 0 | no |" in table
+    assert "| falls | +0.000 (-) | +0.000 (-) | 2 | no |" in table
+    falls = E.format_seed_falls(rows[:2], [0, 1]).splitlines()
+    assert falls[0] == "| condition | seed 0 | seed 1 | total |"
+    assert falls[2:] == ["| 5 ms | 1 | 0 | 1 |", "| 2 ms | 0 | 1 | 1 |"]
+
+
+def test_a_redrawn_seed_falls_as_its_own_full_run():
+    """--seeds reruns only the random-command scenarios for the further seeds: on the
+    training conditions that gives the random scenario exactly what a whole run with
+    --seed N gives it (the other scenarios' robots do not change its draws or physics)."""
+    from legged_casters.tools import evaluate as E
+
+    spec = registry.get_task("caster_omni")
+    cfg, _ = registry.task_configs("caster_omni", [])
+    track = E.Scenario("vx +0.5", ((0.0, (0.5, 0.0, 0.0)),), 1.0, 0.5)
+    pushed = E.Scenario("pushed", ((0.0, (0.0, 0.0, 0.0)),), 2.0, 0.0, copies=2, random_commands=True,
+                        kind="random", push_interval=0.5)  # fmt: skip
+    whole = spec.env_class(E.eval_env_cfg(cfg, (track, pushed)))
+    alone = spec.env_class(E.eval_env_cfg(cfg, (pushed,), terrain_of=(track, pushed)))
+    try:
+        stand = lambda obs: torch.zeros(obs["policy"].shape[0], 12)  # noqa: E731
+        full = E.run_policy(whole, stand, (track, pushed), symmetrise=False, seed=2)[1]
+        (redrawn,) = E.run_policy(alone, stand, (pushed,), symmetrise=False, seed=2)
+    finally:
+        whole.close()
+        alone.close()
+    assert full.name == redrawn.name == "pushed"
+    assert full.err == redrawn.err and full.mean == redrawn.mean and full.falls == redrawn.falls
 
 
 def test_an_imu_bias_is_constant_per_episode_and_only_on_its_terms():

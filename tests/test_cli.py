@@ -667,6 +667,9 @@ def test_evaluate_ranks_checkpoints_as_each_evaluates_alone(run):
         (["--checkpoints", "99"], "not found in"),
         (["--checkpoints", "1", "--checkpoint", "2"], "leave out --checkpoint"),
         (["--checkpoints", "1", "--sim2sim"], "leave out --sim2sim"),
+        (["--checkpoints", "1", "--seeds", "0-1"], "leave out --seeds"),
+        (["--seeds", "0-1", "--seed", "3"], "not both"),
+        (["--seeds", "x"], "expected seeds >= 0"),
     ],
 )
 def test_evaluate_checkpoints_bad_input_exits_2(run, capsys, argv, message):

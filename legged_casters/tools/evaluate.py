@@ -210,13 +210,15 @@ def applicable(scenarios, env_class, env_cfg) -> tuple[Scenario, ...]:
     return tuple(keep)
 
 
-def eval_env_cfg(env_cfg, scenarios, backend: str = "cpu", condition: dict | None = None):
-    """The evaluation env's config; `condition`: more overrides (a row of SIM2SIM)."""
+def eval_env_cfg(env_cfg, scenarios, backend: str = "cpu", condition: dict | None = None, terrain_of=None):
+    """The evaluation env's config; `condition`: more overrides (a row of SIM2SIM);
+    `terrain_of`: the scenario set whose ground to build (default `scenarios`), so that a
+    subset runs on the same ground as the whole set."""
     n = sum(s.copies for s in scenarios)
     longest = max(s.duration for s in scenarios)
     fields = {**EVAL_SETTINGS, "num_envs": n, "episode_length_s": longest + 1.0, "sim.backend": backend}
     fields["sim.device"] = "cpu" if backend == "cpu" else env_cfg.sim.device
-    if any(s.start_x is not None for s in scenarios):
+    if any(s.start_x is not None for s in (terrain_of or scenarios)):
         fields.update({"terrain.segments": [list(seg) for seg in HILL_SEGMENTS], "terrain.start_x": HILL_START_X})
     fields.update(condition or {})
     return common.with_overrides(env_cfg, fields, "evaluation env")
@@ -267,6 +269,11 @@ SIM2SIM = (
     ("2 ms + 20 ms latency + noise", {"physics_dt": 0.002, "latency_ms": 20.0, "noise": True}),
 )
 """The rows of evaluate.py --sim2sim: the training conditions first, then one change each."""
+
+SIM2SIM_TOLERANCE = {"lin": 0.05, "ang": 0.1}
+"""Issue 23's sim-to-sim bar: under another condition every check that measures an error
+stays within 0.05 m/s (vx, vy, the estimator's RMS) or 0.1 rad/s (wz) of its value in the
+first condition, and the robots fall no more often (over the same seeds)."""
 
 
 Policy = Callable[[TensorDict], torch.Tensor]
@@ -644,6 +651,13 @@ def build_parser() -> argparse.ArgumentParser:
         "docs quote); another seed redraws them, to see how much a fall count owes to the draw",
     )
     p.add_argument(
+        "--seeds",
+        metavar="LIST",
+        help="after the run at the first seed, the random-command scenarios again under each further seed (the "
+        "tracking scenarios do not depend on the seed): their falls per seed and in total; '0-4' or '0,3,7'. With "
+        "--sim2sim under every condition, and the table of SIM2SIM_TOLERANCE (issue 23's bar)",
+    )
+    p.add_argument(
         "--symmetrise",
         action="store_true",
         help="run the policy made exactly left-right symmetric (the mean of its action and the mirror image of its "
@@ -697,6 +711,21 @@ def single_condition(args: argparse.Namespace, env_cfg) -> tuple[str, dict]:
     return (", ".join(f"{k}={v}" for k, v in cond.items()) or "training conditions") + _seed_note(args), cond
 
 
+def parse_seeds(text: str) -> list[int]:
+    """--seeds: '0-4' -> [0, 1, 2, 3, 4]; '0,3,7' -> [0, 3, 7]; ranges and commas mix."""
+    seeds: list[int] = []
+    try:
+        for part in text.split(","):
+            lo, sep, hi = part.strip().partition("-")
+            first, last = int(lo), int(hi) if sep else int(lo)
+            if first < 0 or last < first:
+                raise ValueError
+            seeds += [k for k in range(first, last + 1) if k not in seeds]
+    except ValueError:
+        raise UsageError(f"--seeds {text!r}: expected seeds >= 0 as a list or ranges, e.g. 0-4 or 0,3,7") from None
+    return seeds
+
+
 def _seed_note(args: argparse.Namespace) -> str:
     """', seed N' for a condition's name when --seed is not the default 0."""
     return f", seed {args.seed}" if args.seed else ""
@@ -741,6 +770,8 @@ def rank(args: argparse.Namespace, default_log_root: Path | None) -> int:
             raise UsageError(f"--checkpoints ranks checkpoints of a run: leave out --{flag}")
     if args.sim2sim:
         raise UsageError("--checkpoints runs one condition: leave out --sim2sim (give --physics-dt etc. instead)")
+    if args.seeds:
+        raise UsageError("--checkpoints runs one seed: leave out --seeds (give --seed N to redraw)")
     sel = common.select_checkpoint(args, default_log_root)  # the run, its task and configs
     paths = ranked_checkpoints(sel.run_dir, args.checkpoints)
     scenarios = applicable(SCENARIO_SETS[args.scenarios], sel.spec.env_class, sel.env_cfg)
@@ -816,6 +847,10 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
         raise UsageError("--symmetrise runs the deterministic actor; leave out --stochastic")
     if args.checkpoints:
         return rank(args, default_log_root)
+    seeds = parse_seeds(args.seeds) if args.seeds else [args.seed]
+    if args.seeds and args.seed:
+        raise UsageError("give --seed N or --seeds LIST, not both (the list's first seed runs every scenario)")
+    args.seed = seeds[0]
     given = Path(args.policy).expanduser() if args.policy else None
     if given is not None and given.suffix == ".pt" and given.is_file() and common.is_training_checkpoint(given):
         if args.load_run or args.checkpoint:
@@ -857,6 +892,9 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
     if args.symmetrise:
         label += " (symmetrised)"
     scenarios = applicable(SCENARIO_SETS[args.scenarios], spec.env_class, env_cfg)
+    redrawn = tuple(s for s in scenarios if s.random_commands)  # the scenarios a seed changes
+    if len(seeds) > 1 and not redrawn:
+        raise UsageError(f"--seeds: the scenario set {args.scenarios!r} has no random-command scenario to redraw")
     if args.sim2sim:
         if args.physics_dt or args.action_latency_ms or args.noise or args.imu_bias:
             raise UsageError(
@@ -887,11 +925,84 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
         for check, ok, value in checks:
             print(f"{'PASS' if ok else 'FAIL'}  {check}  (measured {value})")
         print(f"\n[{PROG}] verdict: {passed}/{len(checks)} checks passed ({time.time() - t0:.0f} s); {name}")
-        rows.append((name, results, checks))
+        falls = {seeds[0]: sum(r.falls for r in results)}  # every scenario's at the first seed
+        if len(seeds) > 1:
+            falls.update(redraw_falls(spec, env_cfg, cond, scenarios, redrawn, policy, args, seeds[1:]))
+        rows.append((name, results, checks, falls))
+    if len(seeds) > 1:
+        print()
+        print(format_seed_falls(rows, seeds))
     if len(rows) > 1:
         print()
         print(format_sim2sim(rows))
+        if args.sim2sim:
+            print()
+            print(format_tolerance(rows, len(seeds)))
     return common.EXIT_OK
+
+
+def redraw_falls(spec, env_cfg, cond, scenarios, redrawn, policy, args, seeds) -> dict[int, int]:
+    """{seed: falls} of the random-command scenarios under each further seed, on the whole
+    set's ground, one env for all seeds. Under conditions without random draws of their own
+    (all but noise and IMU bias) each count is the one `--seed N` gives."""
+    env = spec.env_class(eval_env_cfg(env_cfg, redrawn, condition=cond, terrain_of=scenarios))
+    out = {}
+    try:
+        for seed in seeds:
+            t0 = time.time()
+            out[seed] = sum(r.falls for r in run_policy(env, policy, redrawn, args.symmetrise, seed))
+            names = ", ".join(s.name for s in redrawn)
+            print(f"[{PROG}] seed {seed}: {names}: {out[seed]} falls ({time.time() - t0:.0f} s)", flush=True)
+    finally:
+        env.close()
+    return out
+
+
+def format_seed_falls(rows, seeds: list[int]) -> str:
+    """Falls per seed and condition: at the first seed in every scenario, at the others in the
+    random-command scenarios (the rest do not depend on the seed)."""
+    lines = ["| condition | " + " | ".join(f"seed {k}" for k in seeds) + " | total |",
+             "|---|" + "---:|" * (len(seeds) + 1)]  # fmt: skip
+    for name, _, _, falls in rows:
+        lines.append(f"| {name} | " + " | ".join(str(falls[k]) for k in seeds) + f" | {sum(falls.values())} |")
+    return "\n".join(lines)
+
+
+def error_checks(checks) -> dict[str, tuple[str, float]]:
+    """The verdict's checks that measure an error: {check: ("lin" (m/s) or "ang" (rad/s), value)}."""
+    out = {}
+    for check, _, value in checks:
+        if "error" in check:
+            out[check] = ("ang" if "|wz error|" in check else "lin", float(value.split()[0]))
+    return out
+
+
+def format_tolerance(rows, n_seeds: int) -> str:
+    """Each condition against the first under SIM2SIM_TOLERANCE: the largest change of an
+    error check (m/s, rad/s) with its check, the falls over all seeds, and whether it is within."""
+    base = error_checks(rows[0][2])
+    base_falls = sum(rows[0][3].values())
+    tol = SIM2SIM_TOLERANCE
+    lines = [
+        f"sim-to-sim tolerance: every error check within {tol['lin']} m/s ({tol['ang']} rad/s for wz) of the first "
+        f"condition's, and no more falls ({n_seeds} seed{'s' if n_seeds > 1 else ''})",
+        "| condition | largest change, m/s | largest change, rad/s | falls | within |",
+        "|---|---|---|---:|---|",
+    ]
+    for name, _, checks, falls in rows:
+        worst = {"lin": (0.0, "-"), "ang": (0.0, "-")}
+        for check, (kind, value) in error_checks(checks).items():
+            if check in base:
+                d = value - base[check][1]
+                if abs(d) > abs(worst[kind][0]):
+                    worst[kind] = (d, _check_label(check))
+        total = sum(falls.values())
+        ok = abs(worst["lin"][0]) <= tol["lin"] and abs(worst["ang"][0]) <= tol["ang"] and total <= base_falls
+        lines.append(
+            f"| {name} | {worst['lin'][0]:+.3f} ({worst['lin'][1]}) | {worst['ang'][0]:+.3f} ({worst['ang'][1]}) | "
+            f"{total} | {'yes' if ok else 'no'} |"
+        )
+    return "\n".join(lines)
 
 
 def format_sim2sim(rows) -> str:
@@ -899,10 +1010,11 @@ def format_sim2sim(rows) -> str:
     error from the first row (m/s for vx/vy, rad/s for wz) with the scenario it is in."""
     base = {r.name: r for r in rows[0][1]}
     lines = [
-        "| condition | checks passed | falls | largest change of a vx/vy error (m/s) | of a wz error (rad/s) |",
+        "| condition | checks passed | falls (first seed) | largest change of a vx/vy error (m/s) "
+        "| of a wz error (rad/s) |",
         "|---|---:|---:|---|---|",
     ]
-    for name, results, checks in rows:
+    for name, results, checks, _ in rows:
         changes = {"lin": [], "ang": []}
         for r in results:
             if r.name in base and r.kind in ("track", "mode"):
