@@ -892,8 +892,7 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
     if args.symmetrise:
         label += " (symmetrised)"
     scenarios = applicable(SCENARIO_SETS[args.scenarios], spec.env_class, env_cfg)
-    redrawn = tuple(s for s in scenarios if s.random_commands)  # the scenarios a seed changes
-    if len(seeds) > 1 and not redrawn:
+    if len(seeds) > 1 and not any(s.random_commands for s in scenarios):
         raise UsageError(f"--seeds: the scenario set {args.scenarios!r} has no random-command scenario to redraw")
     if args.sim2sim:
         if args.physics_dt or args.action_latency_ms or args.noise or args.imu_bias:
@@ -927,7 +926,7 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
         print(f"\n[{PROG}] verdict: {passed}/{len(checks)} checks passed ({time.time() - t0:.0f} s); {name}")
         falls = {seeds[0]: sum(r.falls for r in results)}  # every scenario's at the first seed
         if len(seeds) > 1:
-            falls.update(redraw_falls(spec, env_cfg, cond, scenarios, redrawn, policy, args, seeds[1:]))
+            falls.update(redraw_falls(spec, env_cfg, cond, scenarios, policy, args.symmetrise, seeds[1:]))
         rows.append((name, results, checks, falls))
     if len(seeds) > 1:
         print()
@@ -941,17 +940,18 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
     return common.EXIT_OK
 
 
-def redraw_falls(spec, env_cfg, cond, scenarios, redrawn, policy, args, seeds) -> dict[int, int]:
-    """{seed: falls} of the random-command scenarios under each further seed, on the whole
-    set's ground, one env for all seeds. Under conditions without random draws of their own
-    (all but noise and IMU bias) each count is the one `--seed N` gives."""
+def redraw_falls(spec, env_cfg, cond, scenarios, policy, symmetrise: bool, seeds) -> dict[int, int]:
+    """{seed: falls} of `scenarios`' random-command scenarios under each further seed, on the
+    whole set's ground, one env for all seeds. Under conditions without random draws of their
+    own (all but noise and IMU bias) each count is the one `--seed N` gives."""
+    redrawn = tuple(s for s in scenarios if s.random_commands)
+    names = ", ".join(s.name for s in redrawn)
     env = spec.env_class(eval_env_cfg(env_cfg, redrawn, condition=cond, terrain_of=scenarios))
     out = {}
     try:
         for seed in seeds:
             t0 = time.time()
-            out[seed] = sum(r.falls for r in run_policy(env, policy, redrawn, args.symmetrise, seed))
-            names = ", ".join(s.name for s in redrawn)
+            out[seed] = sum(r.falls for r in run_policy(env, policy, redrawn, symmetrise, seed))
             print(f"[{PROG}] seed {seed}: {names}: {out[seed]} falls ({time.time() - t0:.0f} s)", flush=True)
     finally:
         env.close()
