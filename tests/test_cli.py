@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import io
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -659,6 +660,76 @@ def test_evaluate_ranks_checkpoints_as_each_evaluates_alone(run):
     assert listed == saved
 
 
+def _tolerance_rows(out: str) -> dict[str, tuple[float, float, int, str]]:
+    """{condition: (largest change m/s, rad/s, falls, within)} from the tolerance table."""
+    head = out.index("| condition | largest change, m/s")
+    rows = {}
+    for line in out[head:].splitlines()[2:]:
+        if not line.startswith("| "):
+            break
+        name, lin, ang, falls, within = (c.strip() for c in line.strip("|").split("|"))
+        rows[name] = (float(lin.split()[0]), float(ang.split()[0]), int(falls), within)
+    return rows
+
+
+@pytest.fixture(scope="module")
+def run_5ms(tmp_path_factory):
+    """A 2-iteration run at 5 ms physics (decimation 4, the 20 ms control period): a task
+    config that sets sim.timestep, as --physics-dt and --robot-clock need."""
+    root = tmp_path_factory.mktemp("logs5ms")
+    rc, out = _train(root, "--max_iterations", "2", "--set", "sim.timestep=0.005", "--set", "sim.decimation=4", *SMALL)
+    assert rc == 0, out
+    (run_dir,) = (root / TASK).iterdir()
+    return root, run_dir
+
+
+def test_evaluate_ranks_checkpoints_against_the_robot_clock_bar(run_5ms):
+    """evaluate.py --checkpoints --robot-clock: each checkpoint's row holds what
+    `--checkpoint N --robot-clock` alone prints (checks at 5 ms, falls per condition, the
+    largest change of an error check under 2 ms or 20 ms latency, within the bar or not),
+    and the table is ordered by the bar, then falls, checks and the newest."""
+    from legged_casters.tools import evaluate
+
+    root, run_dir = run_5ms
+    base = ["--log_root", str(root), "--load_run", str(run_dir), "--scenarios", "quick"]
+
+    def ev(*argv):
+        buf = io.StringIO()
+        with contextlib.redirect_stdout(buf):
+            rc = evaluate.main([*base, *argv])
+        return rc, buf.getvalue()
+
+    rc, ranked = ev("--checkpoints", "1,2", "--robot-clock")
+    assert rc == 0, ranked
+    head = ranked.index("| rank | checkpoint |")
+    table = [line for line in ranked[head:].splitlines()[2:] if line.startswith("| ")]
+    assert len(table) == 2
+    rows = {}
+    for line in table:
+        k, file, iteration, passed, falls, *changes, within = (c.strip() for c in line.strip("|").split("|"))
+        rows[file] = (int(k), int(iteration), passed, [int(f) for f in falls.split(" / ")], changes, within)
+    for it in (1, 2):
+        rc, alone = ev("--checkpoint", str(it), "--robot-clock")
+        assert rc == 0, alone
+        assert alone.count("verdict: ") == 3  # 5 ms, 2 ms, 20 ms latency: nothing else
+        tol = _tolerance_rows(alone)
+        assert list(tol) == list(evaluate.ROBOT_CLOCK)
+        _, iteration, passed, falls, changes, within = rows[f"model_{it}.pt"]
+        assert (iteration, passed) == (it, _verdict_of(alone)[0])
+        assert falls == [t[2] for t in tol.values()]
+        others = list(tol.values())[1:]
+        assert len(changes) == len(others) == 2
+        for cell, (lin, ang, _, ok) in zip(changes, others, strict=True):
+            m = re.fullmatch(r"([+-][\d.]+) \(.*\); ([+-][\d.]+) \(.*\): (yes|no)", cell)
+            assert m, cell
+            assert (float(m.group(1)), float(m.group(2)), m.group(3)) == (lin, ang, ok)
+        assert within == ("yes" if all(t[3] == "yes" for t in others) else "no")
+    order = sorted(rows.values(), key=lambda r: r[0])
+    keys = [(r[5] != "yes", sum(r[3]), -int(r[2].split("/")[0]), -r[1]) for r in order]
+    assert keys == sorted(keys)
+    assert "first by issue 23's bar: " + min(rows, key=lambda k: rows[k][0]) in ranked
+
+
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
@@ -668,6 +739,9 @@ def test_evaluate_ranks_checkpoints_as_each_evaluates_alone(run):
         (["--checkpoints", "1", "--checkpoint", "2"], "leave out --checkpoint"),
         (["--checkpoints", "1", "--sim2sim"], "leave out --sim2sim"),
         (["--checkpoints", "1", "--seeds", "0-1"], "leave out --seeds"),
+        (["--sim2sim", "--robot-clock"], "give one of them"),
+        (["--robot-clock", "--physics-dt", "0.002"], "runs its own conditions"),
+        (["--checkpoints", "1", "--robot-clock", "--seeds", "x"], "expected seeds >= 0"),
         (["--seeds", "0-1", "--seed", "3"], "not both"),
         (["--seeds", "x"], "expected seeds >= 0"),
     ],

@@ -270,6 +270,10 @@ SIM2SIM = (
 )
 """The rows of evaluate.py --sim2sim: the training conditions first, then one change each."""
 
+ROBOT_CLOCK = ("5 ms physics (training)", "2 ms physics", "20 ms action latency")
+"""The rows of SIM2SIM that issue 23's bar names (--robot-clock): the training conditions and
+the two it judges against them."""
+
 SIM2SIM_TOLERANCE = {"lin": 0.05, "ang": 0.1}
 """Issue 23's sim-to-sim bar: under another condition every check that measures an error
 stays within 0.05 m/s (vx, vy, the estimator's RMS) or 0.1 rad/s (wz) of its value in the
@@ -675,6 +679,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="the checks under each condition of SIM2SIM (5 ms, 2 ms, latency, noise, IMU bias) and their change "
         "from 5 ms",
     )
+    p.add_argument(
+        "--robot-clock",
+        action="store_true",
+        help="only the conditions of issue 23's bar (5 ms, 2 ms physics, 20 ms action latency) and its tolerance "
+        "table; with --checkpoints each checkpoint under all three, ranked: within the bar first, then fewest falls, "
+        "then most checks passed (--seeds counts the falls over several draws)",
+    )
     return p
 
 
@@ -769,12 +780,18 @@ def rank(args: argparse.Namespace, default_log_root: Path | None) -> int:
         if getattr(args, flag):
             raise UsageError(f"--checkpoints ranks checkpoints of a run: leave out --{flag}")
     if args.sim2sim:
-        raise UsageError("--checkpoints runs one condition: leave out --sim2sim (give --physics-dt etc. instead)")
-    if args.seeds:
-        raise UsageError("--checkpoints runs one seed: leave out --seeds (give --seed N to redraw)")
+        raise UsageError(
+            "--checkpoints runs one condition, or issue 23's three with --robot-clock: leave out --sim2sim"
+        )
+    if args.seeds and not args.robot_clock:
+        raise UsageError(
+            "--checkpoints runs one seed: leave out --seeds (give --seed N to redraw), or add --robot-clock"
+        )
     sel = common.select_checkpoint(args, default_log_root)  # the run, its task and configs
     paths = ranked_checkpoints(sel.run_dir, args.checkpoints)
     scenarios = applicable(SCENARIO_SETS[args.scenarios], sel.spec.env_class, sel.env_cfg)
+    if args.robot_clock:
+        return rank_robot_clock(args, sel, paths, scenarios)
     cond_name, cond = single_condition(args, sel.env_cfg)
     print(f"[{PROG}] run {sel.run_dir}: {len(paths)} checkpoints, {len(scenarios)} scenarios, {cond_name}")
     rows = []
@@ -806,6 +823,109 @@ def rank(args: argparse.Namespace, default_log_root: Path | None) -> int:
     print(f"\n[{PROG}] first by this evaluation: {top['file']} (iteration {top['iteration']}): "
           f"{top['passed']}/{top['checks']} checks, {top['falls']} falls")  # fmt: skip
     return common.EXIT_OK
+
+
+def robot_clock_conditions(args: argparse.Namespace, env_cfg) -> list[tuple[str, dict]]:
+    """(name, overrides) of the ROBOT_CLOCK rows of SIM2SIM."""
+    rows = dict(SIM2SIM)
+    return [(name + _seed_note(args), condition_overrides(env_cfg, **rows[name])) for name in ROBOT_CLOCK]
+
+
+def rank_robot_clock(args: argparse.Namespace, sel, paths: list[Path], scenarios) -> int:
+    """--checkpoints with --robot-clock: each checkpoint under issue 23's three conditions (each
+    result the one `--checkpoint N --robot-clock` gives), its tolerance line as it goes, then a
+    table ranked by the bar (within first), falls over every condition and seed, checks passed
+    at the training conditions, and the newest."""
+    from legged_casters.tools.export import load_actor
+
+    seeds = parse_seeds(args.seeds) if args.seeds else [args.seed]
+    if args.seeds and args.seed:
+        raise UsageError("give --seed N or --seeds LIST, not both (the list's first seed runs every scenario)")
+    args.seed = seeds[0]
+    if len(seeds) > 1 and not any(s.random_commands for s in scenarios):
+        raise UsageError(f"--seeds: the scenario set {args.scenarios!r} has no random-command scenario to redraw")
+    conditions = robot_clock_conditions(args, sel.env_cfg)
+    print(
+        f"[{PROG}] run {sel.run_dir}: {len(paths)} checkpoints, {len(scenarios)} scenarios, "
+        f"{len(conditions)} conditions (issue 23's bar), seeds {', '.join(map(str, seeds))}"
+    )
+    ranked = []
+    for i, path in enumerate(paths, 1):
+        t0 = time.time()
+        ckpt = common.load_checkpoint(path)
+        rows, policy = [], None
+        for name, cond in conditions:
+            env = sel.spec.env_class(eval_env_cfg(sel.env_cfg, scenarios, condition=cond))
+            try:
+                if policy is None:
+                    policy = checkpoint_policy(load_actor(env, sel.train_cfg, ckpt, path), bool(args.stochastic))
+                results = run_policy(env, policy, scenarios, args.symmetrise, args.seed)
+            finally:
+                env.close()
+            checks = verdict(results, sel.task)
+            falls = {seeds[0]: sum(r.falls for r in results)}
+            if len(seeds) > 1:
+                falls.update(redraw_falls(sel.spec, sel.env_cfg, cond, scenarios, policy, args.symmetrise, seeds[1:]))
+            rows.append((name, results, checks, falls))
+        tol = tolerance(rows)[1:]
+        row = {
+            "file": path.name,
+            "iteration": _iterations_done(path, ckpt),
+            "passed": sum(ok for _, ok, _ in rows[0][2]),
+            "checks": len(rows[0][2]),
+            "falls": [sum(r[3].values()) for r in rows],
+            "changes": [(t["lin"], t["ang"], t["within"]) for t in tol],  # per condition after the first
+            "within": all(t["within"] for t in tol),
+        }
+        ranked.append(row)
+        print(f"[{PROG}] {i}/{len(paths)} {_robot_clock_line(row)} ({time.time() - t0:.0f} s)", flush=True)
+    print()
+    print(format_robot_clock_ranking(ranked, len(seeds)))
+    top = min(ranked, key=_robot_clock_key)
+    print(f"\n[{PROG}] first by issue 23's bar: {_robot_clock_line(top)}")
+    return common.EXIT_OK
+
+
+def _robot_clock_key(row: dict) -> tuple:
+    return (not row["within"], sum(row["falls"]), -row["passed"], -row["iteration"])
+
+
+def _robot_clock_line(row: dict) -> str:
+    falls = " / ".join(map(str, row["falls"]))
+    changes = "; ".join(
+        f"{name.split(' (')[0]} {lin[0]:+.3f} m/s, {ang[0]:+.3f} rad/s"
+        for name, (lin, ang, _) in zip(ROBOT_CLOCK[1:], row["changes"], strict=True)
+    )
+    return (
+        f"{row['file']} (iteration {row['iteration']}): {row['passed']}/{row['checks']} checks, falls {falls}; "
+        f"largest changes at {changes}: within {'yes' if row['within'] else 'no'}"
+    )
+
+
+def format_robot_clock_ranking(rows: list[dict], n_seeds: int) -> str:
+    """The checkpoints under --robot-clock, best first: checks at the training conditions, falls
+    per condition (over every seed), and for each other condition the largest change of an
+    error check from the training conditions (m/s; rad/s for wz, with the check) and whether
+    that condition is within the bar; then whether all are."""
+    names = [n.split(" (")[0] for n in ROBOT_CLOCK]
+    lines = [
+        f"issue 23's bar: every error check within {SIM2SIM_TOLERANCE['lin']} m/s ({SIM2SIM_TOLERANCE['ang']} rad/s "
+        f"for wz) of its training-condition value, and no more falls ({n_seeds} seed{'s' if n_seeds > 1 else ''})",
+        f"| rank | checkpoint | iteration | checks passed | falls ({' / '.join(names)}) | "
+        + " | ".join(f"{n}: largest change, m/s; rad/s: within" for n in names[1:])
+        + " | within |",
+        "|---:|---|---:|---:|---|" + "---|" * (len(names) - 1) + "---|",
+    ]
+    for k, r in enumerate(sorted(rows, key=_robot_clock_key), 1):
+        changes = " | ".join(
+            f"{lin[0]:+.3f} ({lin[1]}); {ang[0]:+.3f} ({ang[1]}): {'yes' if ok else 'no'}"
+            for lin, ang, ok in r["changes"]
+        )
+        lines.append(
+            f"| {k} | {r['file']} | {r['iteration']} | {r['passed']}/{r['checks']} | "
+            f"{' / '.join(map(str, r['falls']))} | {changes} | {'yes' if r['within'] else 'no'} |"
+        )
+    return "\n".join(lines)
 
 
 def _iterations_done(path: Path, ckpt: dict) -> int:
@@ -845,6 +965,12 @@ def format_ranking(rows: list[dict]) -> str:
 def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
     if args.symmetrise and args.stochastic:
         raise UsageError("--symmetrise runs the deterministic actor; leave out --stochastic")
+    if args.sim2sim and args.robot_clock:
+        raise UsageError("--robot-clock runs three of --sim2sim's conditions: give one of them")
+    if args.robot_clock and (args.physics_dt or args.action_latency_ms or args.noise or args.imu_bias):
+        raise UsageError(
+            "--robot-clock runs its own conditions: leave out --physics-dt, --action-latency-ms, --noise, --imu-bias"
+        )
     if args.checkpoints:
         return rank(args, default_log_root)
     seeds = parse_seeds(args.seeds) if args.seeds else [args.seed]
@@ -900,6 +1026,8 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
                 "--sim2sim runs its own conditions: leave out --physics-dt, --action-latency-ms, --noise, --imu-bias"
             )
         conditions = [(name + _seed_note(args), condition_overrides(env_cfg, **kw)) for name, kw in SIM2SIM]
+    elif args.robot_clock:
+        conditions = robot_clock_conditions(args, env_cfg)
     else:
         conditions = [single_condition(args, env_cfg)]
     rows = []
@@ -934,7 +1062,7 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
     if len(rows) > 1:
         print()
         print(format_sim2sim(rows))
-        if args.sim2sim:
+        if args.sim2sim or args.robot_clock:
             print()
             print(format_tolerance(rows, len(seeds)))
     return common.EXIT_OK
@@ -977,18 +1105,14 @@ def error_checks(checks) -> dict[str, tuple[str, float]]:
     return out
 
 
-def format_tolerance(rows, n_seeds: int) -> str:
-    """Each condition against the first under SIM2SIM_TOLERANCE: the largest change of an
-    error check (m/s, rad/s) with its check, the falls over all seeds, and whether it is within."""
+def tolerance(rows) -> list[dict]:
+    """Each condition of `rows` (name, results, checks, {seed: falls}) against the first under
+    SIM2SIM_TOLERANCE: the largest change of an error check, m/s and rad/s apart, as
+    (change, check), the falls over all seeds, and whether it is within."""
     base = error_checks(rows[0][2])
     base_falls = sum(rows[0][3].values())
     tol = SIM2SIM_TOLERANCE
-    lines = [
-        f"sim-to-sim tolerance: every error check within {tol['lin']} m/s ({tol['ang']} rad/s for wz) of the first "
-        f"condition's, and no more falls ({n_seeds} seed{'s' if n_seeds > 1 else ''})",
-        "| condition | largest change, m/s | largest change, rad/s | falls | within |",
-        "|---|---|---|---:|---|",
-    ]
+    out = []
     for name, _, checks, falls in rows:
         worst = {"lin": (0.0, "-"), "ang": (0.0, "-")}
         for check, (kind, value) in error_checks(checks).items():
@@ -998,9 +1122,23 @@ def format_tolerance(rows, n_seeds: int) -> str:
                     worst[kind] = (d, _check_label(check))
         total = sum(falls.values())
         ok = abs(worst["lin"][0]) <= tol["lin"] and abs(worst["ang"][0]) <= tol["ang"] and total <= base_falls
+        out.append({"name": name, "lin": worst["lin"], "ang": worst["ang"], "falls": total, "within": ok})
+    return out
+
+
+def format_tolerance(rows, n_seeds: int) -> str:
+    """tolerance() as a table, with the bar it applies."""
+    tol = SIM2SIM_TOLERANCE
+    lines = [
+        f"sim-to-sim tolerance: every error check within {tol['lin']} m/s ({tol['ang']} rad/s for wz) of the first "
+        f"condition's, and no more falls ({n_seeds} seed{'s' if n_seeds > 1 else ''})",
+        "| condition | largest change, m/s | largest change, rad/s | falls | within |",
+        "|---|---|---|---:|---|",
+    ]
+    for t in tolerance(rows):
         lines.append(
-            f"| {name} | {worst['lin'][0]:+.3f} ({worst['lin'][1]}) | {worst['ang'][0]:+.3f} ({worst['ang'][1]}) | "
-            f"{total} | {'yes' if ok else 'no'} |"
+            f"| {t['name']} | {t['lin'][0]:+.3f} ({t['lin'][1]}) | {t['ang'][0]:+.3f} ({t['ang'][1]}) | "
+            f"{t['falls']} | {'yes' if t['within'] else 'no'} |"
         )
     return "\n".join(lines)
 
