@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 import torch
+import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 TASK = "go2_flat"
@@ -124,17 +125,25 @@ def test_procs_launches_one_pinned_process_per_core(tmp_path):
         pytest.skip("needs 2 usable cores")
     cmd = [sys.executable, str(REPO / "train.py"), *TINY[:2], "--procs", "2", "--num_envs", "8", *TINY[4:]]
     cmd += ["--log_root", str(tmp_path), "--max_iterations", "2"]
+    # each process its own physics step (same 20 ms control period): process 0 at 5 ms, process 1 at 2 ms
+    cmd += ["--set-per-process", "sim.timestep=[0.005,0.002]", "--set-per-process", "sim.decimation=[4,10]"]
     proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=240)
     log = proc.stdout + proc.stderr
     assert proc.returncode == 0, log[-6000:]
     assert "2 processes on" in log and "4 envs each" in log
     cores = sorted(int(c) for c in re.findall(r"rank \d: CPU core (\d+), 1 torch thread", log))
     assert len(cores) == 2 and cores[0] != cores[1], log[-3000:]
+    steps = sorted(re.findall(r"control dt 0\.020 s = (\d+ x [\d.]+ ms) physics", log))
+    assert steps == ["10 x 2 ms", "4 x 5 ms"], log[-3000:]
     (run_dir,) = (tmp_path / TASK).iterdir()
     assert (run_dir / "model_2.pt").exists()
     assert "--procs 2" in (run_dir / "command.txt").read_text()
-    assert "num_envs: 4" in (run_dir / "env.yaml").read_text()  # per process
-    assert "processes: 2" in (run_dir / "run.yaml").read_text()
+    env_yaml = yaml.safe_load((run_dir / "env.yaml").read_text())
+    assert env_yaml["num_envs"] == 4  # per process
+    assert (env_yaml["sim"]["timestep"], env_yaml["sim"]["decimation"]) == (0.005, 4)  # process 0's
+    info = yaml.safe_load((run_dir / "run.yaml").read_text())
+    assert info["processes"] == 2
+    assert info["env_set_per_process"] == {"sim.timestep": [0.005, 0.002], "sim.decimation": [4, 10]}
 
 
 @pytest.mark.parametrize(
@@ -143,6 +152,9 @@ def test_procs_launches_one_pinned_process_per_core(tmp_path):
         (["--procs", "0"], "--procs must be at least 1"),
         (["--procs", "64"], "one process per core"),
         (["--procs", "2", "--num_envs", "5"], "does not split evenly into 2 processes"),
+        (["--procs", "2", "--set-per-process", "sim.timestep=[0.005]"], "1 values for 2 process(es)"),
+        (["--set-per-process", "sim.timestep=0.005"], "expected KEY=[V0,V1,...]"),
+        (["--set-per-process", "sim.timestep=[0.005,0.002]"], "2 values for 1 process(es)"),
     ],
 )
 def test_procs_bad_input(extra, message, capsys):
@@ -185,3 +197,27 @@ def test_procs_auto_is_two_on_the_cpu_with_two_cores(monkeypatch):
     assert train.resolve_procs(parse(["--procs", "3"])) == 3
     with pytest.raises(SystemExit):
         parse(["--procs", "two"])
+
+
+def test_each_process_gets_its_own_entry_and_every_entry_is_checked(tmp_path):
+    """--set-per-process: process r trains with each list's entry r; a value no process may
+    use fails in every process (before any simulation), and --resume takes the run's lists
+    from run.yaml unless the count of processes differs."""
+    from legged_casters import registry
+    from legged_casters.config import ConfigError
+    from legged_casters.tools import train
+    from legged_casters.tools.common import UsageError
+
+    cfg = registry.get_task(TASK).env_cfg
+    per = {"sim.timestep": [0.005, 0.002], "sim.decimation": [4, 10]}
+    first, second = (train.process_env_cfg(cfg, per, r, 2) for r in (0, 1))
+    assert (first.sim.timestep, first.sim.decimation) == (0.005, 4)
+    assert (second.sim.timestep, second.sim.decimation) == (0.002, 10)
+    with pytest.raises(ConfigError, match=r"--set-per-process \(process 1\)"):
+        train.process_env_cfg(cfg, {"sim.decimation": [4, 0]}, 0, 2)  # process 0's own value is fine
+
+    (tmp_path / "run.yaml").write_text(yaml.safe_dump({"processes": 2, "env_set_per_process": per}))
+    assert train.resumed_per_process(tmp_path, 2) == per
+    with pytest.raises(UsageError, match="resume it with as many"):
+        train.resumed_per_process(tmp_path, 1)
+    assert train.resumed_per_process(tmp_path / "missing", 1) == {}

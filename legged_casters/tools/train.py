@@ -90,6 +90,18 @@ def build_parser() -> argparse.ArgumentParser:
         help="override a train config field, e.g. --train-set algorithm.learning_rate=5e-4 (repeatable)",
     )
     p.add_argument(
+        "--set-per-process",
+        "--set_per_process",
+        dest="env_set_per_process",
+        action="append",
+        default=[],
+        metavar="KEY=[V0,V1,...]",
+        help="an env config field that differs between the processes of a --procs run, one value per process in "
+        "rank order, e.g. --procs 2 --set-per-process 'sim.timestep=[0.005,0.002]' --set-per-process "
+        "'sim.decimation=[4,10]' (half the batch at 5 ms physics, half at 2 ms; repeatable). env.yaml holds "
+        "process 0's config, run.yaml the lists; --resume applies a run's lists again unless given anew",
+    )
+    p.add_argument(
         "--torch_threads",
         type=int,
         help="torch intra-op threads (default: torch's, one per core; the env step always runs on one, "
@@ -119,6 +131,54 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+PER_PROCESS_KEY = "env_set_per_process"
+"""run.yaml's record of --set-per-process: {env config key: [value of process 0, 1, ...]}."""
+
+
+def parse_per_process(items: list[str], world: int) -> dict[str, list]:
+    """--set-per-process KEY=[V0,V1,...] items -> {KEY: [values]}, one value per process."""
+    out: dict[str, list] = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        try:
+            values = yaml.safe_load(text) if sep else None
+        except yaml.YAMLError:
+            values = None
+        if not key or not isinstance(values, list):
+            raise UsageError(
+                f"--set-per-process {item!r}: expected KEY=[V0,V1,...] with one value per process, "
+                "e.g. 'sim.timestep=[0.005,0.002]'"
+            )
+        if len(values) != world:
+            raise UsageError(
+                f"--set-per-process {key}: {len(values)} values for {world} process(es); give one per process "
+                f"(--procs {len(values)}) or leave it out"
+            )
+        out[key.strip()] = values
+    return out
+
+
+def process_env_cfg(env_cfg, per_process: dict[str, list], rank: int, world: int):
+    """The env config of process `rank`: each --set-per-process list's entry `rank`. Every
+    process's is built (and so checked) first, so a bad value fails in every process alike."""
+    configs = [
+        common.with_overrides(env_cfg, {k: v[r] for k, v in per_process.items()}, f"--set-per-process (process {r})")
+        for r in range(world)
+    ]
+    return configs[rank]
+
+
+def resumed_per_process(run_dir: Path, world: int) -> dict[str, list]:
+    """The --set-per-process lists a resumed run was trained with (run.yaml), for as many processes."""
+    saved = common.read_run_info(run_dir).get(PER_PROCESS_KEY) or {}
+    if saved and any(len(v) != world for v in saved.values()):
+        raise UsageError(
+            f"run {run_dir} was trained with --set-per-process {saved} ({len(next(iter(saved.values())))} "
+            f"processes); resume it with as many (--procs), or give --set-per-process anew"
+        )
+    return {k: list(v) for k, v in saved.items()}
+
+
 def _stop_on_signals() -> None:
     """Ctrl-C, `kill -INT` and `kill` (SIGTERM) all stop training the same way: the
     newest checkpoint is named with the command that continues from it. (A process a
@@ -132,7 +192,9 @@ def _stop_on_signals() -> None:
         signal.signal(signal.SIGTERM, interrupt)
 
 
-def _write_run_files(run_dir: Path, task: str, experiment: str, env_cfg, train_cfg, argv, resumed_from) -> None:
+def _write_run_files(
+    run_dir: Path, task: str, experiment: str, env_cfg, train_cfg, argv, resumed_from, per_process: dict
+) -> None:
     dump_yaml(env_cfg, run_dir / "env.yaml")
     dump_yaml(train_cfg, run_dir / "train.yaml")
     info = common.read_run_info(run_dir)
@@ -140,6 +202,10 @@ def _write_run_files(run_dir: Path, task: str, experiment: str, env_cfg, train_c
     info.setdefault("experiment", experiment)
     info.setdefault("created", datetime.datetime.now().isoformat(timespec="seconds"))
     info["processes"] = int(os.environ.get("WORLD_SIZE", "1"))  # env.yaml's num_envs is per process
+    if per_process:
+        info[PER_PROCESS_KEY] = per_process  # env.yaml is process 0's; process r used each list's entry r
+    else:
+        info.pop(PER_PROCESS_KEY, None)
     if resumed_from:
         info.setdefault("resumed", []).append(
             {"from": str(resumed_from), "at": datetime.datetime.now().isoformat(timespec="seconds")}
@@ -196,6 +262,10 @@ def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Pa
 
     env_cfg = common.with_overrides(env_cfg, args.env_set, "--set")
     train_cfg = common.with_overrides(train_cfg, args.train_set, "--train-set")
+    per_process = parse_per_process(args.env_set_per_process, world)
+    if not per_process and run_dir is not None:
+        per_process = resumed_per_process(run_dir, world)
+    env_cfg = process_env_cfg(env_cfg, per_process, rank, world)
     env_fields = {"sim.backend": args.sim_backend, "sim.device": device}
     if args.num_envs is not None:
         env_fields["num_envs"] = args.num_envs
@@ -218,7 +288,8 @@ def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Pa
     env = spec.env_class(env_cfg)
     print(
         f"[{PROG}] task {task}: {env.num_envs} envs on the {env.backend_kind} backend, device {device}, "
-        f"obs {env.observation_dims()}, control dt {env.dt:.3f} s (env built in {time.time() - t0:.1f} s)"
+        f"obs {env.observation_dims()}, control dt {env.dt:.3f} s = {env.sim.decimation} x "
+        f"{env.sim.physics_dt * 1e3:g} ms physics (env built in {time.time() - t0:.1f} s)"
     )
     rsl_cfg = train_cfg.for_env(env)
     rsl_cfg["run_name"] = train_cfg.run_name
@@ -233,7 +304,7 @@ def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Pa
             runner.load_checkpoint(ckpt, ckpt_path)
             print(f"[{PROG}] resumed {ckpt_path} after {runner.current_learning_iteration} iterations")
         if rank == 0:
-            _write_run_files(run_dir, task, experiment, env_cfg, train_cfg, argv, ckpt_path)
+            _write_run_files(run_dir, task, experiment, env_cfg, train_cfg, argv, ckpt_path, per_process)
             print(f"[{PROG}] run folder {run_dir}")
         if args.eval_every and rank == 0:
             from legged_casters.tools.evaluate import DeterministicEval
@@ -305,6 +376,7 @@ def launch_procs(args: argparse.Namespace, argv: list[str], default_log_root: Pa
     SIGTERM are passed on, so the workers stop as a single run does."""
     if args.procs < 1:
         raise UsageError(f"--procs must be at least 1, got {args.procs}")
+    parse_per_process(args.env_set_per_process, args.procs)  # a wrong count fails here, not in every worker
     backend = resolve_backend(args.sim_backend)
     device = common.resolve_device(args.device, backend)
     if device != "cpu" or backend != "cpu":
