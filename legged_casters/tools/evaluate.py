@@ -825,6 +825,20 @@ def rank(args: argparse.Namespace, default_log_root: Path | None) -> int:
     return common.EXIT_OK
 
 
+def resolve_seeds(args: argparse.Namespace) -> list[int]:
+    """The seeds of --seed / --seeds; args.seed becomes the first (the one every scenario runs at)."""
+    seeds = parse_seeds(args.seeds) if args.seeds else [args.seed]
+    if args.seeds and args.seed:
+        raise UsageError("give --seed N or --seeds LIST, not both (the list's first seed runs every scenario)")
+    args.seed = seeds[0]
+    return seeds
+
+
+def check_redraw(args: argparse.Namespace, seeds: list[int], scenarios) -> None:
+    if len(seeds) > 1 and not any(s.random_commands for s in scenarios):
+        raise UsageError(f"--seeds: the scenario set {args.scenarios!r} has no random-command scenario to redraw")
+
+
 def robot_clock_conditions(args: argparse.Namespace, env_cfg) -> list[tuple[str, dict]]:
     """(name, overrides) of the ROBOT_CLOCK rows of SIM2SIM."""
     rows = dict(SIM2SIM)
@@ -838,12 +852,8 @@ def rank_robot_clock(args: argparse.Namespace, sel, paths: list[Path], scenarios
     at the training conditions, and the newest."""
     from legged_casters.tools.export import load_actor
 
-    seeds = parse_seeds(args.seeds) if args.seeds else [args.seed]
-    if args.seeds and args.seed:
-        raise UsageError("give --seed N or --seeds LIST, not both (the list's first seed runs every scenario)")
-    args.seed = seeds[0]
-    if len(seeds) > 1 and not any(s.random_commands for s in scenarios):
-        raise UsageError(f"--seeds: the scenario set {args.scenarios!r} has no random-command scenario to redraw")
+    seeds = resolve_seeds(args)
+    check_redraw(args, seeds, scenarios)
     conditions = robot_clock_conditions(args, sel.env_cfg)
     print(
         f"[{PROG}] run {sel.run_dir}: {len(paths)} checkpoints, {len(scenarios)} scenarios, "
@@ -973,10 +983,7 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
         )
     if args.checkpoints:
         return rank(args, default_log_root)
-    seeds = parse_seeds(args.seeds) if args.seeds else [args.seed]
-    if args.seeds and args.seed:
-        raise UsageError("give --seed N or --seeds LIST, not both (the list's first seed runs every scenario)")
-    args.seed = seeds[0]
+    seeds = resolve_seeds(args)
     given = Path(args.policy).expanduser() if args.policy else None
     if given is not None and given.suffix == ".pt" and given.is_file() and common.is_training_checkpoint(given):
         if args.load_run or args.checkpoint:
@@ -1018,8 +1025,7 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
     if args.symmetrise:
         label += " (symmetrised)"
     scenarios = applicable(SCENARIO_SETS[args.scenarios], spec.env_class, env_cfg)
-    if len(seeds) > 1 and not any(s.random_commands for s in scenarios):
-        raise UsageError(f"--seeds: the scenario set {args.scenarios!r} has no random-command scenario to redraw")
+    check_redraw(args, seeds, scenarios)
     if args.sim2sim:
         if args.physics_dt or args.action_latency_ms or args.noise or args.imu_bias:
             raise UsageError(
