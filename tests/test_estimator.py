@@ -195,7 +195,7 @@ def test_speed_set_checks_slalom_ramp_and_sweep_bars():
     assert not checks["estimator RMS error <= 0.1 m/s (worst flat scenario)"]
 
 
-@pytest.mark.parametrize("name", ["caster_omni_speed", "caster_omni_anneal"])
+@pytest.mark.parametrize("name", ["caster_omni_speed", "caster_omni_anneal", "caster_omni_clock"])
 def test_the_shipped_estimator_policy_loads_everywhere_and_estimates_its_speed(name):
     from legged_casters.deploy.policy import load_meta
     from legged_casters.tools import common
