@@ -268,6 +268,36 @@ def test_sim2sim_tolerance_and_seeds():
     assert falls[2:] == ["| 5 ms | 1 | 0 | 1 |", "| 2 ms | 0 | 1 | 1 |"]
 
 
+def test_robot_clock_ranking_puts_falls_at_the_training_conditions_first():
+    """--checkpoints --robot-clock's order: a checkpoint that falls at 5 ms ranks below one
+    that does not, even if its falls elsewhere keep it "within" the (relative) bar; then
+    within before not, fewer falls, more checks, the newer; the table shows each condition's
+    largest changes and verdict."""
+    from legged_casters.tools import evaluate as E
+
+    def row(file, it, falls, within, passed=8):
+        change = ((0.01, "vx +0.5"), (0.02, "wz +0.8"), within)
+        return {"file": file, "iteration": it, "passed": passed, "checks": 16, "falls": falls,
+                "changes": [change, change], "within": within}  # fmt: skip
+
+    rows = [
+        row("steady_faller.pt", 100, [5, 5, 5], True),  # within (no more falls than at 5 ms), but falls
+        row("upright_out.pt", 200, [0, 0, 1], False),
+        row("upright_in.pt", 150, [0, 0, 0], True),
+        row("upright_in_more_checks.pt", 120, [0, 0, 0], True, passed=10),
+    ]
+    order = [r["file"] for r in sorted(rows, key=E._robot_clock_key)]
+    assert order == ["upright_in_more_checks.pt", "upright_in.pt", "upright_out.pt", "steady_faller.pt"]
+    table = E.format_robot_clock_ranking(rows, 5).splitlines()
+    assert table[0].startswith("issue 23's bar: every error check within 0.05 m/s") and "(5 seeds)" in table[0]
+    assert "2 ms physics: largest change, m/s; rad/s: within" in table[1]
+    assert table[3] == (
+        "| 1 | upright_in_more_checks.pt | 120 | 10/16 | 0 / 0 / 0 | +0.010 (vx +0.5); +0.020 (wz +0.8): yes | "
+        "+0.010 (vx +0.5); +0.020 (wz +0.8): yes | yes |"
+    )
+    assert table[-1].startswith("| 4 | steady_faller.pt | 100 | 8/16 | 5 / 5 / 5 |")
+
+
 def test_a_redrawn_seed_falls_as_its_own_full_run():
     """--seeds reruns only the random-command scenarios for the further seeds: on the
     training conditions that gives the random scenario exactly what a whole run with

@@ -725,7 +725,7 @@ def test_evaluate_ranks_checkpoints_against_the_robot_clock_bar(run_5ms):
             assert (float(m.group(1)), float(m.group(2)), m.group(3)) == (lin, ang, ok)
         assert within == ("yes" if all(t[3] == "yes" for t in others) else "no")
     order = sorted(rows.values(), key=lambda r: r[0])
-    keys = [(r[5] != "yes", sum(r[3]), -int(r[2].split("/")[0]), -r[1]) for r in order]
+    keys = [(r[3][0], r[5] != "yes", sum(r[3]), -int(r[2].split("/")[0]), -r[1]) for r in order]
     assert keys == sorted(keys)
     assert "first by issue 23's bar: " + min(rows, key=lambda k: rows[k][0]) in ranked
 
@@ -739,7 +739,8 @@ def test_evaluate_ranks_checkpoints_against_the_robot_clock_bar(run_5ms):
         (["--checkpoints", "1", "--checkpoint", "2"], "leave out --checkpoint"),
         (["--checkpoints", "1", "--sim2sim"], "leave out --sim2sim"),
         (["--checkpoints", "1", "--seeds", "0-1"], "leave out --seeds"),
-        (["--sim2sim", "--robot-clock"], "give one of them"),
+        (["--sim2sim", "--robot-clock"], "not both"),
+        (["--robot-clock", "--checkpoint", "1"], "needs a task whose config sets sim.timestep"),
         (["--robot-clock", "--physics-dt", "0.002"], "runs its own conditions"),
         (["--checkpoints", "1", "--robot-clock", "--seeds", "x"], "expected seeds >= 0"),
         (["--seeds", "0-1", "--seed", "3"], "not both"),

@@ -155,6 +155,7 @@ def test_procs_launches_one_pinned_process_per_core(tmp_path):
         (["--procs", "2", "--set-per-process", "sim.timestep=[0.005]"], "1 values for 2 process(es)"),
         (["--set-per-process", "sim.timestep=0.005"], "expected KEY=[V0,V1,...]"),
         (["--set-per-process", "sim.timestep=[0.005,0.002]"], "2 values for 1 process(es)"),
+        (["--procs", "2", "--set-per-process", "sim.timestep=[0.005,0.002]"], "control period"),
     ],
 )
 def test_procs_bad_input(extra, message, capsys):
@@ -201,8 +202,11 @@ def test_procs_auto_is_two_on_the_cpu_with_two_cores(monkeypatch):
 
 def test_each_process_gets_its_own_entry_and_every_entry_is_checked(tmp_path):
     """--set-per-process: process r trains with each list's entry r; a value no process may
-    use fails in every process (before any simulation), and --resume takes the run's lists
-    from run.yaml unless the count of processes differs."""
+    use, or a control period that differs between processes, fails in every process (before
+    any simulation); --resume applies the run's lists (run.yaml) for each key not given anew,
+    per process or by --set, and names the flags to give when the count of processes differs."""
+    import argparse
+
     from legged_casters import registry
     from legged_casters.config import ConfigError
     from legged_casters.tools import train
@@ -215,9 +219,22 @@ def test_each_process_gets_its_own_entry_and_every_entry_is_checked(tmp_path):
     assert (second.sim.timestep, second.sim.decimation) == (0.002, 10)
     with pytest.raises(ConfigError, match=r"--set-per-process \(process 1\)"):
         train.process_env_cfg(cfg, {"sim.decimation": [4, 0]}, 0, 2)  # process 0's own value is fine
+    with pytest.raises(UsageError, match=r"control period .* \(20 ms, 8 ms\).*'sim.decimation=\[4,10\]'"):
+        train.process_env_cfg(cfg, {"sim.timestep": [0.005, 0.002], "sim.decimation": [4, 4]}, 0, 2)
+
+    def args(per_process=(), env_set=()):
+        return argparse.Namespace(env_set_per_process=list(per_process), env_set=list(env_set))
 
     (tmp_path / "run.yaml").write_text(yaml.safe_dump({"processes": 2, "env_set_per_process": per}))
-    assert train.resumed_per_process(tmp_path, 2) == per
-    with pytest.raises(UsageError, match="resume it with as many"):
-        train.resumed_per_process(tmp_path, 1)
-    assert train.resumed_per_process(tmp_path / "missing", 1) == {}
+    assert train.per_process_for(args(), None, 2) == {}  # a new run: only what is given
+    assert train.per_process_for(args(), tmp_path, 2) == per  # a resume: the run's own
+    given = train.per_process_for(args(["sim.decimation=[5,10]"]), tmp_path, 2)
+    assert given == {"sim.timestep": [0.005, 0.002], "sim.decimation": [5, 10]}  # one key anew, the other kept
+    alike = train.per_process_for(args([], ["sim.timestep=0.004"]), tmp_path, 2)
+    assert alike == {"sim.decimation": [4, 10]}  # --set makes that key alike in every process
+    with pytest.raises(UsageError, match=r"2 processes with .*--set-per-process 'sim.timestep=\[0.005,0.002\]'"):
+        train.per_process_for(args(), tmp_path, 1)
+    assert train.per_process_for(args(["sim.timestep=[0.005]", "sim.decimation=[4]"]), tmp_path, 1) == {
+        "sim.timestep": [0.005],
+        "sim.decimation": [4],
+    }

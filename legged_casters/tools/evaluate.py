@@ -240,7 +240,10 @@ def condition_overrides(
     control_dt = env_cfg.sim.timestep * env_cfg.sim.decimation if env_cfg.sim.timestep else None
     if physics_dt is not None:
         if control_dt is None:
-            raise UsageError("--physics-dt needs a task whose config sets sim.timestep")
+            raise UsageError(
+                "another physics step (--physics-dt, --sim2sim, --robot-clock) needs a task whose config sets "
+                "sim.timestep (give it with --set sim.timestep=... when training)"
+            )
         decimation = round(control_dt / physics_dt)
         if decimation < 1 or abs(decimation * physics_dt - control_dt) > 1e-9:
             raise UsageError(
@@ -683,8 +686,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--robot-clock",
         action="store_true",
         help="only the conditions of issue 23's bar (5 ms, 2 ms physics, 20 ms action latency) and its tolerance "
-        "table; with --checkpoints each checkpoint under all three, ranked: within the bar first, then fewest falls, "
-        "then most checks passed (--seeds counts the falls over several draws)",
+        "table; with --checkpoints each checkpoint under all three, ranked: fewest falls at 5 ms, then within the "
+        "bar, then fewest falls in all, then most checks passed (--seeds counts the falls over several draws)",
     )
     return p
 
@@ -839,10 +842,19 @@ def check_redraw(args: argparse.Namespace, seeds: list[int], scenarios) -> None:
         raise UsageError(f"--seeds: the scenario set {args.scenarios!r} has no random-command scenario to redraw")
 
 
-def robot_clock_conditions(args: argparse.Namespace, env_cfg) -> list[tuple[str, dict]]:
-    """(name, overrides) of the ROBOT_CLOCK rows of SIM2SIM."""
+def named_conditions(args: argparse.Namespace, env_cfg, names) -> list[tuple[str, dict]]:
+    """(name, overrides) of the named rows of SIM2SIM (all of them, or ROBOT_CLOCK)."""
     rows = dict(SIM2SIM)
-    return [(name + _seed_note(args), condition_overrides(env_cfg, **rows[name])) for name in ROBOT_CLOCK]
+    return [(name + _seed_note(args), condition_overrides(env_cfg, **rows[name])) for name in names]
+
+
+def falls_by_seed(spec, env_cfg, cond, scenarios, policy, args: argparse.Namespace, seeds, results) -> dict[int, int]:
+    """{seed: falls}: every scenario's at the first seed (`results`), the random-command
+    scenarios' again under each further seed."""
+    falls = {seeds[0]: sum(r.falls for r in results)}
+    if len(seeds) > 1:
+        falls.update(redraw_falls(spec, env_cfg, cond, scenarios, policy, args.symmetrise, seeds[1:]))
+    return falls
 
 
 def rank_robot_clock(args: argparse.Namespace, sel, paths: list[Path], scenarios) -> int:
@@ -854,7 +866,7 @@ def rank_robot_clock(args: argparse.Namespace, sel, paths: list[Path], scenarios
 
     seeds = resolve_seeds(args)
     check_redraw(args, seeds, scenarios)
-    conditions = robot_clock_conditions(args, sel.env_cfg)
+    conditions = named_conditions(args, sel.env_cfg, ROBOT_CLOCK)
     print(
         f"[{PROG}] run {sel.run_dir}: {len(paths)} checkpoints, {len(scenarios)} scenarios, "
         f"{len(conditions)} conditions (issue 23's bar), seeds {', '.join(map(str, seeds))}"
@@ -872,11 +884,8 @@ def rank_robot_clock(args: argparse.Namespace, sel, paths: list[Path], scenarios
                 results = run_policy(env, policy, scenarios, args.symmetrise, args.seed)
             finally:
                 env.close()
-            checks = verdict(results, sel.task)
-            falls = {seeds[0]: sum(r.falls for r in results)}
-            if len(seeds) > 1:
-                falls.update(redraw_falls(sel.spec, sel.env_cfg, cond, scenarios, policy, args.symmetrise, seeds[1:]))
-            rows.append((name, results, checks, falls))
+            falls = falls_by_seed(sel.spec, sel.env_cfg, cond, scenarios, policy, args, seeds, results)
+            rows.append((name, results, verdict(results, sel.task), falls))
         tol = tolerance(rows)[1:]
         row = {
             "file": path.name,
@@ -897,7 +906,10 @@ def rank_robot_clock(args: argparse.Namespace, sel, paths: list[Path], scenarios
 
 
 def _robot_clock_key(row: dict) -> tuple:
-    return (not row["within"], sum(row["falls"]), -row["passed"], -row["iteration"])
+    """Fewest falls at the training conditions first (the bar is relative: a checkpoint that
+    falls alike everywhere would be within it), then within the bar, then fewest falls in all,
+    most checks passed, the newest."""
+    return (row["falls"][0], not row["within"], sum(row["falls"]), -row["passed"], -row["iteration"])
 
 
 def _robot_clock_line(row: dict) -> str:
@@ -976,10 +988,11 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
     if args.symmetrise and args.stochastic:
         raise UsageError("--symmetrise runs the deterministic actor; leave out --stochastic")
     if args.sim2sim and args.robot_clock:
-        raise UsageError("--robot-clock runs three of --sim2sim's conditions: give one of them")
-    if args.robot_clock and (args.physics_dt or args.action_latency_ms or args.noise or args.imu_bias):
+        raise UsageError("give --sim2sim (seven conditions) or --robot-clock (three of them), not both")
+    own = "--sim2sim" if args.sim2sim else "--robot-clock" if args.robot_clock else None
+    if own and (args.physics_dt or args.action_latency_ms or args.noise or args.imu_bias):
         raise UsageError(
-            "--robot-clock runs its own conditions: leave out --physics-dt, --action-latency-ms, --noise, --imu-bias"
+            f"{own} runs its own conditions: leave out --physics-dt, --action-latency-ms, --noise, --imu-bias"
         )
     if args.checkpoints:
         return rank(args, default_log_root)
@@ -1027,13 +1040,9 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
     scenarios = applicable(SCENARIO_SETS[args.scenarios], spec.env_class, env_cfg)
     check_redraw(args, seeds, scenarios)
     if args.sim2sim:
-        if args.physics_dt or args.action_latency_ms or args.noise or args.imu_bias:
-            raise UsageError(
-                "--sim2sim runs its own conditions: leave out --physics-dt, --action-latency-ms, --noise, --imu-bias"
-            )
-        conditions = [(name + _seed_note(args), condition_overrides(env_cfg, **kw)) for name, kw in SIM2SIM]
+        conditions = named_conditions(args, env_cfg, [name for name, _ in SIM2SIM])
     elif args.robot_clock:
-        conditions = robot_clock_conditions(args, env_cfg)
+        conditions = named_conditions(args, env_cfg, ROBOT_CLOCK)
     else:
         conditions = [single_condition(args, env_cfg)]
     rows = []
@@ -1058,9 +1067,7 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
         for check, ok, value in checks:
             print(f"{'PASS' if ok else 'FAIL'}  {check}  (measured {value})")
         print(f"\n[{PROG}] verdict: {passed}/{len(checks)} checks passed ({time.time() - t0:.0f} s); {name}")
-        falls = {seeds[0]: sum(r.falls for r in results)}  # every scenario's at the first seed
-        if len(seeds) > 1:
-            falls.update(redraw_falls(spec, env_cfg, cond, scenarios, policy, args.symmetrise, seeds[1:]))
+        falls = falls_by_seed(spec, env_cfg, cond, scenarios, policy, args, seeds, results)
         rows.append((name, results, checks, falls))
     if len(seeds) > 1:
         print()

@@ -160,23 +160,46 @@ def parse_per_process(items: list[str], world: int) -> dict[str, list]:
 
 def process_env_cfg(env_cfg, per_process: dict[str, list], rank: int, world: int):
     """The env config of process `rank`: each --set-per-process list's entry `rank`. Every
-    process's is built (and so checked) first, so a bad value fails in every process alike."""
+    process's is built (and so checked) first, so a bad value fails in every process alike,
+    and all must share one control period (physics step x decimation): PPO's batch is one."""
     configs = [
         common.with_overrides(env_cfg, {k: v[r] for k, v in per_process.items()}, f"--set-per-process (process {r})")
         for r in range(world)
     ]
+    if all(c.sim.timestep for c in configs):
+        periods = [c.sim.timestep * c.sim.decimation for c in configs]
+        if max(periods) - min(periods) > 1e-9:
+            keep = [max(1, round(periods[0] / c.sim.timestep)) for c in configs]
+            raise UsageError(
+                "--set-per-process: the control period (sim.timestep x sim.decimation) differs between the processes "
+                f"({', '.join(f'{t * 1e3:g} ms' for t in periods)}); keep it equal, e.g. "
+                f"--set-per-process 'sim.decimation=[{','.join(map(str, keep))}]'"
+            )
     return configs[rank]
 
 
-def resumed_per_process(run_dir: Path, world: int) -> dict[str, list]:
-    """The --set-per-process lists a resumed run was trained with (run.yaml), for as many processes."""
+def _flags(per_process: dict[str, list]) -> str:
+    """{key: [values]} as the --set-per-process flags that give it, ready to paste."""
+    return " ".join(f"--set-per-process '{k}=[{','.join(map(str, v))}]'" for k, v in per_process.items())
+
+
+def per_process_for(args: argparse.Namespace, run_dir: Path | None, world: int) -> dict[str, list]:
+    """The per-process lists of this invocation: --set-per-process as given; on --resume also
+    the run's own (run.yaml) for every key not given anew, neither per process nor by --set
+    (which makes every process alike)."""
+    given = parse_per_process(args.env_set_per_process, world)
+    if run_dir is None:
+        return given
     saved = common.read_run_info(run_dir).get(PER_PROCESS_KEY) or {}
-    if saved and any(len(v) != world for v in saved.values()):
+    set_keys = {item.partition("=")[0].strip() for item in args.env_set}
+    kept = {k: list(v) for k, v in saved.items() if k not in given and k not in set_keys}
+    if kept and any(len(v) != world for v in kept.values()):
+        n = len(next(iter(kept.values())))
         raise UsageError(
-            f"run {run_dir} was trained with --set-per-process {saved} ({len(next(iter(saved.values())))} "
-            f"processes); resume it with as many (--procs), or give --set-per-process anew"
+            f"run {run_dir} was trained in {n} processes with {_flags(kept)}: resume it with --procs {n}, or give "
+            f"each key anew, per process ({world} value(s) each) or alike for all (--set KEY=VALUE)"
         )
-    return {k: list(v) for k, v in saved.items()}
+    return {**kept, **given}
 
 
 def _stop_on_signals() -> None:
@@ -262,9 +285,9 @@ def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Pa
 
     env_cfg = common.with_overrides(env_cfg, args.env_set, "--set")
     train_cfg = common.with_overrides(train_cfg, args.train_set, "--train-set")
-    per_process = parse_per_process(args.env_set_per_process, world)
-    if not per_process and run_dir is not None:
-        per_process = resumed_per_process(run_dir, world)
+    per_process = per_process_for(args, run_dir, world)
+    if per_process and rank == 0:
+        print(f"[{PROG}] per process: {_flags(per_process)}")
     env_cfg = process_env_cfg(env_cfg, per_process, rank, world)
     env_fields = {"sim.backend": args.sim_backend, "sim.device": device}
     if args.num_envs is not None:
@@ -370,13 +393,23 @@ def total_envs(args: argparse.Namespace, spec, default_log_root: Path | None) ->
     return spec.env_cfg.num_envs or CPU_DEFAULT_NUM_ENVS
 
 
+def check_process_configs(args: argparse.Namespace, spec, default_log_root: Path | None) -> None:
+    """What every worker of --procs will check of its config, checked once in the launcher."""
+    run_dir = None
+    if args.resume:
+        root = common.log_root(args.log_root, default_log_root)
+        run_dir = common.find_run(root, args.experiment_name or spec.train_cfg.experiment_name, args.load_run)
+    env_cfg, _ = common.run_configs(spec, run_dir)
+    env_cfg = common.with_overrides(env_cfg, args.env_set, "--set")
+    process_env_cfg(env_cfg, per_process_for(args, run_dir, args.procs), 0, args.procs)
+
+
 def launch_procs(args: argparse.Namespace, argv: list[str], default_log_root: Path | None) -> int:
     """--procs N: this process starts torchrun with N copies of train.py on this machine's
     CPU (each pins itself to one core, `pin_to_core`) and waits for them; Ctrl-C and
     SIGTERM are passed on, so the workers stop as a single run does."""
     if args.procs < 1:
         raise UsageError(f"--procs must be at least 1, got {args.procs}")
-    parse_per_process(args.env_set_per_process, args.procs)  # a wrong count fails here, not in every worker
     backend = resolve_backend(args.sim_backend)
     device = common.resolve_device(args.device, backend)
     if device != "cpu" or backend != "cpu":
@@ -390,6 +423,7 @@ def launch_procs(args: argparse.Namespace, argv: list[str], default_log_root: Pa
         raise UsageError(f"--procs {args.procs}: this process may use {cores} CPU core(s); one process per core")
     task = args.task or common.default_task()
     spec = common.check_task(task)
+    check_process_configs(args, spec, default_log_root)  # a bad --set-per-process fails here, not in every worker
     child = _strip_flag(_strip_flag(argv, "--procs"), "--num_envs")
     total = total_envs(args, spec, default_log_root)
     if total % args.procs:
