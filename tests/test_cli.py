@@ -613,20 +613,26 @@ def _verdict_of(out: str) -> tuple[str, list[str]]:
     return passed, fails
 
 
-def test_evaluate_ranks_checkpoints_as_each_evaluates_alone(run):
-    """evaluate.py --checkpoints: each checkpoint's line agrees with `--checkpoint N` alone
-    (checks passed, the failed checks' measurements), the table is ordered by falls, then
-    checks passed, then the newest, and 'all' lists every saved checkpoint once."""
+def _quick_evaluation(root: Path, run_dir: Path):
+    """evaluate.py on `run_dir`'s quick scenarios: ev(*argv) -> (exit code, stdout)."""
     from legged_casters.tools import evaluate
-
-    root, run_dir, _, _, _ = run
-    base = ["--log_root", str(root), "--load_run", str(run_dir), "--scenarios", "quick"]
 
     def ev(*argv):
         buf = io.StringIO()
         with contextlib.redirect_stdout(buf):
-            rc = evaluate.main([*base, *argv])
+            rc = evaluate.main(["--log_root", str(root), "--load_run", str(run_dir), "--scenarios", "quick", *argv])
         return rc, buf.getvalue()
+
+    return ev
+
+
+def test_evaluate_ranks_checkpoints_as_each_evaluates_alone(run):
+    """evaluate.py --checkpoints: each checkpoint's line agrees with `--checkpoint N` alone
+    (checks passed, the failed checks' measurements), the table is ordered by falls, then
+    checks passed, then the newest, and 'all' lists every saved checkpoint once."""
+
+    root, run_dir, _, _, _ = run
+    ev = _quick_evaluation(root, run_dir)
 
     rc, ranked = ev("--checkpoints", "3,1,3")
     assert rc == 0, ranked
@@ -687,17 +693,11 @@ def test_evaluate_ranks_checkpoints_against_the_robot_clock_bar(run_5ms):
     """evaluate.py --checkpoints --robot-clock: each checkpoint's row holds what
     `--checkpoint N --robot-clock` alone prints (checks at 5 ms, falls per condition, the
     largest change of an error check under 2 ms or 20 ms latency, within the bar or not),
-    and the table is ordered by the bar, then falls, checks and the newest."""
+    and the table is ordered by falls at 5 ms, the bar, all falls, checks and the newest."""
     from legged_casters.tools import evaluate
 
     root, run_dir = run_5ms
-    base = ["--log_root", str(root), "--load_run", str(run_dir), "--scenarios", "quick"]
-
-    def ev(*argv):
-        buf = io.StringIO()
-        with contextlib.redirect_stdout(buf):
-            rc = evaluate.main([*base, *argv])
-        return rc, buf.getvalue()
+    ev = _quick_evaluation(root, run_dir)
 
     rc, ranked = ev("--checkpoints", "1,2", "--robot-clock")
     assert rc == 0, ranked

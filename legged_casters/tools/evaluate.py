@@ -859,9 +859,8 @@ def falls_by_seed(spec, env_cfg, cond, scenarios, policy, args: argparse.Namespa
 
 def rank_robot_clock(args: argparse.Namespace, sel, paths: list[Path], scenarios) -> int:
     """--checkpoints with --robot-clock: each checkpoint under issue 23's three conditions (each
-    result the one `--checkpoint N --robot-clock` gives), its tolerance line as it goes, then a
-    table ranked by the bar (within first), falls over every condition and seed, checks passed
-    at the training conditions, and the newest."""
+    result the one `--checkpoint N --robot-clock` gives), its line as it goes, then the table
+    in _robot_clock_key's order."""
     from legged_casters.tools.export import load_actor
 
     seeds = resolve_seeds(args)

@@ -98,8 +98,9 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="KEY=[V0,V1,...]",
         help="an env config field that differs between the processes of a --procs run, one value per process in "
         "rank order, e.g. --procs 2 --set-per-process 'sim.timestep=[0.005,0.002]' --set-per-process "
-        "'sim.decimation=[4,10]' (half the batch at 5 ms physics, half at 2 ms; repeatable). env.yaml holds "
-        "process 0's config, run.yaml the lists; --resume applies a run's lists again unless given anew",
+        "'sim.decimation=[4,10]' (half the batch at 5 ms physics, half at 2 ms; repeatable); all processes keep one "
+        "control period. env.yaml holds process 0's config, run.yaml the lists; --resume applies them again for "
+        "every key not given anew, per process or alike for all by --set",
     )
     p.add_argument(
         "--torch_threads",
@@ -376,17 +377,19 @@ def _strip_flag(argv: list[str], flag: str) -> list[str]:
     return out
 
 
+def _resume_dir(args: argparse.Namespace, spec, default_log_root: Path | None) -> Path:
+    """The run folder --resume (with --load_run, --experiment_name, --log_root) continues."""
+    root = common.log_root(args.log_root, default_log_root)
+    return common.find_run(root, args.experiment_name or spec.train_cfg.experiment_name, args.load_run)
+
+
 def total_envs(args: argparse.Namespace, spec, default_log_root: Path | None) -> int:
     """The envs of all processes together: --num_envs, else on --resume the run's (env.yaml's
     envs per process x run.yaml's processes), else the task's."""
     if args.num_envs is not None:
         return args.num_envs
     if args.resume:
-        run_dir = common.find_run(
-            common.log_root(args.log_root, default_log_root),
-            args.experiment_name or spec.train_cfg.experiment_name,
-            args.load_run,
-        )
+        run_dir = _resume_dir(args, spec, default_log_root)
         saved_env, _ = common.run_configs(spec, run_dir)
         processes = int(common.read_run_info(run_dir).get("processes", 1))
         return (saved_env.num_envs or CPU_DEFAULT_NUM_ENVS) * processes
@@ -395,10 +398,7 @@ def total_envs(args: argparse.Namespace, spec, default_log_root: Path | None) ->
 
 def check_process_configs(args: argparse.Namespace, spec, default_log_root: Path | None) -> None:
     """What every worker of --procs will check of its config, checked once in the launcher."""
-    run_dir = None
-    if args.resume:
-        root = common.log_root(args.log_root, default_log_root)
-        run_dir = common.find_run(root, args.experiment_name or spec.train_cfg.experiment_name, args.load_run)
+    run_dir = _resume_dir(args, spec, default_log_root) if args.resume else None
     env_cfg, _ = common.run_configs(spec, run_dir)
     env_cfg = common.with_overrides(env_cfg, args.env_set, "--set")
     process_env_cfg(env_cfg, per_process_for(args, run_dir, args.procs), 0, args.procs)
