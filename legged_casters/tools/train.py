@@ -66,7 +66,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--max_minutes",
         type=float,
-        help="wall-time budget: stop after the iteration that reaches it (its checkpoint is the run's last)",
+        help="wall-time budget, counted from the first iteration (after the env is built: on Warp with an "
+        "empty kernel cache that takes 80-100 s): stop after the iteration that reaches it (its checkpoint is "
+        "the run's last)",
     )
     p.add_argument("--seed", type=int, help="seed of env and networks (default: the train config's)")
     p.add_argument("--device", default="auto", help="torch device of the learner and env tensors: auto, cpu, cuda:N")
