@@ -8,6 +8,9 @@
     python3 scripts/gpu.py run --out $OUT      # there, in the last call: install, then every stage
     python scripts/gpu.py run --cpu --out DIR  # anywhere: the same stages, Warp on the CPU, tiny sizes
     python scripts/gpu.py report gpu_check.json  # the table again, from a run's JSON
+    python3 scripts/gpu.py train --out $OUT --deadline-s 560 -- --task caster_omni --sim_backend warp ...
+                                               # there, instead of `run`: install, then one training with
+                                               # a deadline, its run folder packed into --out (gpu_train.py)
 
 `run` writes DIR/gpu_check.json (everything measured), DIR/gpu_check.txt (a table) and
 DIR/gpu_check.log (the stages' output, cut to their tails). The stages and their time
@@ -25,7 +28,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from legged_casters.tools import gpu_check, gpu_wheels  # noqa: E402  (standard library only)
+from legged_casters.tools import gpu_check, gpu_train, gpu_wheels  # noqa: E402  (standard library only)
 
 
 def cmd_prepare(args) -> int:
@@ -94,6 +97,30 @@ def cmd_run(args) -> int:
     return 0
 
 
+def cmd_train(args) -> int:
+    t0 = time.time()
+    train_args = args.train_args[1:] if args.train_args[:1] == ["--"] else args.train_args
+    if not train_args:
+        print("gpu.py train: give train.py's arguments after --, e.g. -- --task caster_omni --sim_backend warp")
+        return 2
+    site = None
+    if not args.no_install:
+        site = Path(args.site)
+        result = gpu_wheels.install(REPO, Path(args.stash), site)
+        problems = result["problems"] + gpu_wheels.check_requirements(site, result["left_behind"])
+        for line in problems:
+            print(f"[install] {line}")
+        if result["status"] != "ok":
+            print(f"[gpu_train] the install failed ({result['status']}): not training")
+            return 1
+    cache = (
+        Path(args.warp_cache)
+        if args.warp_cache
+        else Path(tempfile.gettempdir()) / "legged_casters_gpu_check" / "warp_cache"
+    )
+    return gpu_train.run_training(train_args, Path(args.out), args.deadline_s, site, cache, started=t0)
+
+
 def cmd_report(args) -> int:
     import json
 
@@ -125,6 +152,20 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--stash", default=gpu_wheels.DEFAULT_STASH)
     run.add_argument("--site", default=gpu_wheels.DEFAULT_SITE)
     run.add_argument("--no-install", action="store_true", help="use this interpreter's packages as they are")
+    tr = sub.add_parser("train", help="there: install, then one train.py run with a deadline, its run folder packed")
+    tr.add_argument("--out", required=True, help="folder for train.log and the run folder's <run>.tar.NN parts")
+    tr.add_argument(
+        "--deadline-s",
+        type=float,
+        default=560.0,
+        help="seconds from this command's start to train.py's stop, packing included (default 560: a device "
+        "call's 600 s timeout minus the transfers)",
+    )
+    tr.add_argument("--no-install", action="store_true", help="use this interpreter's packages as they are")
+    tr.add_argument("--stash", default=gpu_wheels.DEFAULT_STASH)
+    tr.add_argument("--site", default=gpu_wheels.DEFAULT_SITE)
+    tr.add_argument("--warp-cache", help="Warp's kernel cache (default: the check's, kept on a warm machine)")
+    tr.add_argument("train_args", nargs=argparse.REMAINDER, help="-- then train.py's arguments")
     rep = sub.add_parser("report", help="print the table of a run's gpu_check.json")
     rep.add_argument("json")
     return p
@@ -140,6 +181,7 @@ def main(argv: list[str] | None = None) -> int:
         "install": cmd_install,
         "run": cmd_run,
         "report": cmd_report,
+        "train": cmd_train,
     }
     return commands[args.command](args)
 

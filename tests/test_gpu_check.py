@@ -302,3 +302,85 @@ def test_train_stops_at_its_wall_budget(tmp_path, capsys):
     (run_dir,) = (tmp_path / "go2_flat").iterdir()
     assert sorted(p.name for p in run_dir.glob("model_*.pt")) == ["model_1.pt"]
     assert train.main([*argv[:-8], "--max_minutes", "0"]) == 2  # a usage error
+
+
+# --- `train`: one training with a deadline, its run folder packed to come back ---------------------------
+def _unpack(parts: list[Path], dest: Path) -> None:
+    import io
+    import tarfile
+
+    data = b"".join(p.read_bytes() for p in sorted(parts))
+    with tarfile.open(fileobj=io.BytesIO(data)) as tar:
+        tar.extractall(dest, filter="data")
+
+
+def test_pack_run_keeps_the_newest_checkpoints_within_the_parts(tmp_path):
+    from legged_casters.tools import gpu_train
+
+    run = tmp_path / "logs" / "2026-01-01_00-00-00_x"
+    run.mkdir(parents=True)
+    rng = random.Random(0)
+    for name in ("env.yaml", "train.yaml", "run.yaml", "events.out.tfevents.1"):
+        (run / name).write_text(name * 50)
+    for it in (50, 100, 150, 200, 250):
+        (run / f"model_{it}.pt").write_bytes(rng.randbytes(30_000))
+    (run / "model_best.pt").write_bytes(rng.randbytes(30_000))
+    out = tmp_path / "out"
+    # room for the small files, model_best and two numbered checkpoints, in 20 kB parts
+    packed = gpu_train.pack_run(run, out, part_bytes=20_000, max_parts=6)
+    assert packed["left_out"] == ["model_100.pt", "model_150.pt", "model_50.pt"]
+    assert {"model_250.pt", "model_200.pt", "model_best.pt", "env.yaml"} <= set(packed["packed"])
+    assert [p.name for p in packed["parts"]] == [f"{run.name}.tar.{i:02d}" for i in range(len(packed["parts"]))]
+    assert all(p.stat().st_size <= 20_000 for p in packed["parts"])
+    _unpack(packed["parts"], tmp_path / "back")
+    back = tmp_path / "back" / run.name
+    assert sorted(p.name for p in back.iterdir()) == packed["packed"]
+    for name in packed["packed"]:
+        assert (back / name).read_bytes() == (run / name).read_bytes()
+    with pytest.raises(ValueError, match="besides its checkpoints"):
+        gpu_train.pack_run(run, tmp_path / "out2", part_bytes=1_000, max_parts=1)
+
+
+TINY_TRAIN = ["--task", "go2_flat", "--num_envs", "4", "--sim_backend", "cpu", "--device", "cpu", "--console", "line"]
+TINY_TRAIN += ["--eval_every", "0", "--train-set", "num_steps_per_env=4", "--train-set", "save_interval=5"]
+TINY_TRAIN += ["--train-set", "policy.actor_hidden_dims=[32,32]", "--train-set", "policy.critic_hidden_dims=[32,32]"]
+
+
+def _gpu_train(tmp_path: Path, *args: str, timeout: float = 200) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, str(REPO / "scripts" / "gpu.py"), "train", "--no-install", "--out", str(tmp_path / "out")]
+    return subprocess.run([*cmd, *args], cwd=REPO, capture_output=True, text=True, timeout=timeout)
+
+
+def test_gpu_train_runs_train_py_and_packs_its_run_folder(tmp_path):
+    logs = tmp_path / "logs"
+    proc = _gpu_train(tmp_path, "--", *TINY_TRAIN, "--log_root", str(logs), "--max_iterations", "2")
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    (run,) = (logs / "go2_flat").iterdir()
+    parts = sorted((tmp_path / "out").glob(f"{run.name}.tar.*"))
+    assert parts and "tar xf - -C logs/go2_flat" in proc.stdout
+    _unpack(parts, tmp_path / "back")
+    back = tmp_path / "back" / run.name
+    assert (back / "model_2.pt").read_bytes() == (run / "model_2.pt").read_bytes()
+    assert (back / "env.yaml").is_file() and (back / "run.yaml").is_file()
+    assert "[train.py] done" in (tmp_path / "out" / "train.log").read_text()
+
+
+def test_gpu_train_stops_train_py_at_the_deadline_and_still_packs(tmp_path):
+    logs = tmp_path / "logs"
+    # 40 s minus the 20 s kept for packing: SIGTERM about 20 s after the start, long before 100000 iterations
+    proc = _gpu_train(
+        tmp_path, "--deadline-s", "40", "--", *TINY_TRAIN, "--log_root", str(logs), "--max_iterations", "100000"
+    )
+    assert "deadline: 40 s since the start" in proc.stdout, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert proc.returncode == 130  # train.py's own status for a stop by signal
+    (run,) = (logs / "go2_flat").iterdir()
+    assert "interrupted; newest checkpoint" in (tmp_path / "out" / "train.log").read_text()
+    _unpack(sorted((tmp_path / "out").glob(f"{run.name}.tar.*")), tmp_path / "back")
+    assert sorted(p.name for p in (tmp_path / "back" / run.name).glob("model_*.pt")) == sorted(
+        p.name for p in run.glob("model_*.pt")
+    )
+
+
+def test_gpu_train_without_train_arguments_is_a_usage_error(tmp_path):
+    proc = _gpu_train(tmp_path)
+    assert proc.returncode == 2 and "give train.py's arguments after --" in proc.stdout
