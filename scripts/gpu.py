@@ -26,6 +26,8 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+DEFAULT_WORK = Path(tempfile.gettempdir()) / "legged_casters_gpu_check"
+"""The check's runs, logs and Warp kernel cache (work/warp_cache, which `train` uses too)."""
 sys.path.insert(0, str(REPO))
 
 from legged_casters.tools import gpu_check, gpu_train, gpu_wheels  # noqa: E402  (standard library only)
@@ -53,27 +55,37 @@ def cmd_stash(args) -> int:
     return 0 if st["present"] else 1
 
 
-def cmd_install(args) -> int:
-    result = gpu_wheels.install(REPO, Path(args.stash), Path(args.site))
-    result["requirements"] = gpu_wheels.check_requirements(Path(args.site), result["left_behind"])
-    for line in result["problems"] + result["requirements"]:
+def install(stash: Path, site: Path) -> dict:
+    """Stash this call's wheels, install every complete one into `site`, list unmet requirements."""
+    t0 = time.time()
+    try:
+        result = gpu_wheels.install(REPO, stash, site)
+        result["requirements"] = gpu_wheels.check_requirements(site, result["left_behind"])
+    except Exception as err:  # the caller decides whether to go on
+        result = {"status": "error", "error": f"{type(err).__name__}: {err}", "problems": [], "requirements": []}
+    result.setdefault("seconds", round(time.time() - t0, 1))
+    return result
+
+
+def _print_install(result: dict) -> None:
+    for line in result["problems"] + result["requirements"] + ([result["error"]] if "error" in result else []):
         print(f"[install] {line}")
+
+
+def cmd_install(args) -> int:
+    result = install(Path(args.stash), Path(args.site))
+    _print_install(result)
     return 0 if result["status"] == "ok" else 1
 
 
 def cmd_run(args) -> int:
     out = Path(args.out).resolve()
-    work = Path(args.work).resolve() if args.work else Path(tempfile.gettempdir()) / "legged_casters_gpu_check"
+    work = Path(args.work).resolve() if args.work else DEFAULT_WORK
     install_result, site = None, None
     t0 = time.time()
     if not args.cpu and not args.no_install:
         site = Path(args.site)
-        try:
-            install_result = gpu_wheels.install(REPO, Path(args.stash), site)
-            install_result["requirements"] = gpu_wheels.check_requirements(site, install_result["left_behind"])
-        except Exception as err:  # go on: the stages will say what is missing
-            install_result = {"status": "error", "error": f"{type(err).__name__}: {err}"}
-        install_result.setdefault("seconds", round(time.time() - t0, 1))
+        install_result = install(Path(args.stash), site)  # on an error go on: the stages say what is missing
         print(f"[gpu_check] install: {install_result['status']}", flush=True)
     stages = args.stages.split(",") if args.stages else None
     budget = args.budget_s - (time.time() - t0)
@@ -103,21 +115,18 @@ def cmd_train(args) -> int:
     if not train_args:
         print("gpu.py train: give train.py's arguments after --, e.g. -- --task caster_omni --sim_backend warp")
         return 2
+    if args.deadline_s < gpu_train.MIN_DEADLINE_S:
+        print(f"gpu.py train: --deadline-s {args.deadline_s:g} is too short: at least {gpu_train.MIN_DEADLINE_S:g}")
+        return 2
     site = None
     if not args.no_install:
         site = Path(args.site)
-        result = gpu_wheels.install(REPO, Path(args.stash), site)
-        problems = result["problems"] + gpu_wheels.check_requirements(site, result["left_behind"])
-        for line in problems:
-            print(f"[install] {line}")
+        result = install(Path(args.stash), site)
+        _print_install(result)
         if result["status"] != "ok":
             print(f"[gpu_train] the install failed ({result['status']}): not training")
             return 1
-    cache = (
-        Path(args.warp_cache)
-        if args.warp_cache
-        else Path(tempfile.gettempdir()) / "legged_casters_gpu_check" / "warp_cache"
-    )
+    cache = Path(args.warp_cache) if args.warp_cache else DEFAULT_WORK / "warp_cache"
     return gpu_train.run_training(train_args, Path(args.out), args.deadline_s, site, cache, started=t0)
 
 
@@ -144,7 +153,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--out", required=True, help="folder for gpu_check.json / .txt / .log")
     run.add_argument("--cpu", action="store_true", help="Warp on the CPU device, tiny sizes (CI)")
     run.add_argument("--budget-s", type=float, default=None, help="wall budget (default: 420 s; --cpu 300 s)")
-    run.add_argument("--work", help="runs, logs, kernel cache (default: <tmp>/legged_casters_gpu_check)")
+    run.add_argument("--work", help=f"runs, logs, kernel cache (default: {DEFAULT_WORK})")
     run.add_argument("--stages", help=f"a subset, comma-separated, of: {','.join(gpu_check.STAGES)}")
     run.add_argument(
         "--limit", action="append", default=[], metavar="STAGE=S", help="a stage's time limit in seconds (repeatable)"
@@ -164,7 +173,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--no-install", action="store_true", help="use this interpreter's packages as they are")
     tr.add_argument("--stash", default=gpu_wheels.DEFAULT_STASH)
     tr.add_argument("--site", default=gpu_wheels.DEFAULT_SITE)
-    tr.add_argument("--warp-cache", help="Warp's kernel cache (default: the check's, kept on a warm machine)")
+    tr.add_argument("--warp-cache", help=f"Warp's kernel cache (default: {DEFAULT_WORK / 'warp_cache'}, the check's)")
     tr.add_argument("train_args", nargs=argparse.REMAINDER, help="-- then train.py's arguments")
     rep = sub.add_parser("report", help="print the table of a run's gpu_check.json")
     rep.add_argument("json")

@@ -331,14 +331,32 @@ def test_pack_run_keeps_the_newest_checkpoints_within_the_parts(tmp_path):
     assert packed["left_out"] == ["model_100.pt", "model_150.pt", "model_50.pt"]
     assert {"model_250.pt", "model_200.pt", "model_best.pt", "env.yaml"} <= set(packed["packed"])
     assert [p.name for p in packed["parts"]] == [f"{run.name}.tar.{i:02d}" for i in range(len(packed["parts"]))]
-    assert all(p.stat().st_size <= 20_000 for p in packed["parts"])
+    assert all(p.stat().st_size <= 20_000 for p in packed["parts"]) and len(packed["parts"]) <= 6
     _unpack(packed["parts"], tmp_path / "back")
     back = tmp_path / "back" / run.name
     assert sorted(p.name for p in back.iterdir()) == packed["packed"]
     for name in packed["packed"]:
         assert (back / name).read_bytes() == (run / name).read_bytes()
-    with pytest.raises(ValueError, match="besides its checkpoints"):
+    with pytest.raises(ValueError, match="without its numbered checkpoints"):
         gpu_train.pack_run(run, tmp_path / "out2", part_bytes=1_000, max_parts=1)
+
+
+def test_pack_run_counts_the_tar_headers_and_names_parts_as_the_device_tool_returns_them(tmp_path):
+    """Many small files cost a header each (and Python's tar adds one per fractional mtime):
+    the parts still number at most max_parts; a run name outside [A-Za-z0-9._-] is made safe."""
+    from legged_casters.tools import gpu_train
+
+    run = tmp_path / "2026-01-01_00-00-00_a b+c"
+    run.mkdir()
+    for i in range(20):
+        (run / f"events.{i}").write_bytes(b"x" * 520)
+    for it in range(1, 6):
+        (run / f"model_{it}.pt").write_bytes(bytes(5_000))
+    packed = gpu_train.pack_run(run, tmp_path / "out", part_bytes=20_000, max_parts=4)
+    assert 1 <= len(packed["parts"]) <= 4 and packed["left_out"]
+    assert all(p.name.startswith("2026-01-01_00-00-00_a_b_c.tar.") for p in packed["parts"])
+    _unpack(packed["parts"], tmp_path / "back")
+    assert sorted(p.name for p in (tmp_path / "back" / run.name).iterdir()) == packed["packed"]
 
 
 TINY_TRAIN = ["--task", "go2_flat", "--num_envs", "4", "--sim_backend", "cpu", "--device", "cpu", "--console", "line"]
@@ -357,7 +375,7 @@ def test_gpu_train_runs_train_py_and_packs_its_run_folder(tmp_path):
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     (run,) = (logs / "go2_flat").iterdir()
     parts = sorted((tmp_path / "out").glob(f"{run.name}.tar.*"))
-    assert parts and "tar xf - -C logs/go2_flat" in proc.stdout
+    assert parts and "mkdir -p logs/go2_flat && cat <files_at>/" in proc.stdout
     _unpack(parts, tmp_path / "back")
     back = tmp_path / "back" / run.name
     assert (back / "model_2.pt").read_bytes() == (run / "model_2.pt").read_bytes()
@@ -367,20 +385,24 @@ def test_gpu_train_runs_train_py_and_packs_its_run_folder(tmp_path):
 
 def test_gpu_train_stops_train_py_at_the_deadline_and_still_packs(tmp_path):
     logs = tmp_path / "logs"
-    # 40 s minus the 20 s kept for packing: SIGTERM about 20 s after the start, long before 100000 iterations
-    proc = _gpu_train(
-        tmp_path, "--deadline-s", "40", "--", *TINY_TRAIN, "--log_root", str(logs), "--max_iterations", "100000"
-    )
-    assert "deadline: 40 s since the start" in proc.stdout, proc.stdout[-3000:] + proc.stderr[-3000:]
-    assert proc.returncode == 130  # train.py's own status for a stop by signal
+    # the shortest deadline, 60 s less the 20 s kept for packing: SIGTERM about 40 s after the
+    # start, long before 100000 iterations and long after the env is built (checkpoints every 5)
+    args = ["--deadline-s", "60", "--", *TINY_TRAIN, "--log_root", str(logs), "--max_iterations", "100000"]
+    proc = _gpu_train(tmp_path, *args)
+    out = proc.stdout + proc.stderr
+    assert "[gpu_train] deadline:" in out and "stopping train.py (SIGTERM)" in out, out[-3000:]
+    assert "stopped cleanly at the deadline" in out and proc.returncode == 0, out[-3000:]
     (run,) = (logs / "go2_flat").iterdir()
     assert "interrupted; newest checkpoint" in (tmp_path / "out" / "train.log").read_text()
+    kept = sorted(p.name for p in run.glob("model_*.pt"))
+    assert len(kept) >= 2  # model_best.pt and at least one numbered checkpoint
     _unpack(sorted((tmp_path / "out").glob(f"{run.name}.tar.*")), tmp_path / "back")
-    assert sorted(p.name for p in (tmp_path / "back" / run.name).glob("model_*.pt")) == sorted(
-        p.name for p in run.glob("model_*.pt")
-    )
+    assert sorted(p.name for p in (tmp_path / "back" / run.name).glob("model_*.pt")) == kept
 
 
-def test_gpu_train_without_train_arguments_is_a_usage_error(tmp_path):
+def test_gpu_train_usage_errors(tmp_path):
     proc = _gpu_train(tmp_path)
     assert proc.returncode == 2 and "give train.py's arguments after --" in proc.stdout
+    proc = _gpu_train(tmp_path, "--deadline-s", "30", "--", *TINY_TRAIN)
+    assert proc.returncode == 2 and "--deadline-s 30 is too short: at least 60" in proc.stdout
+    assert not (tmp_path / "out").exists()  # nothing ran

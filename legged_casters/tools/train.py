@@ -67,7 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--max_minutes",
         type=float,
         help="wall-time budget, counted from the first iteration (after the env is built: on Warp with an "
-        "empty kernel cache that takes 80-100 s): stop after the iteration that reaches it (its checkpoint is "
+        "empty kernel cache, 79-88 s on an H200): stop after the iteration that reaches it (its checkpoint is "
         "the run's last)",
     )
     p.add_argument("--seed", type=int, help="seed of env and networks (default: the train config's)")
