@@ -167,8 +167,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--deadline-s",
         type=float,
         default=560.0,
-        help="seconds from this command's start to train.py's stop, packing included (default 560: a device "
-        "call's 600 s timeout minus the transfers)",
+        help="seconds from this command's start until the run is packed: train.py gets SIGTERM 20 s before it "
+        "(default 560: a device call's 600 s timeout minus the transfers; at least 60)",
     )
     tr.add_argument("--no-install", action="store_true", help="use this interpreter's packages as they are")
     tr.add_argument("--stash", default=gpu_wheels.DEFAULT_STASH)
