@@ -707,6 +707,15 @@ def _kill(proc: subprocess.Popen) -> None:
     proc.wait()
 
 
+def child_env(site: Path | None) -> dict[str, str]:
+    """The environment of a child Python (a stage, or `gpu.py train`'s train.py): unbuffered,
+    with the installed wheels (`site`) and then this repo first on its path."""
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    paths = [str(site)] if site else []
+    env["PYTHONPATH"] = os.pathsep.join([*paths, str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])])
+    return env
+
+
 def run_check(
     out: Path,
     *,
@@ -739,9 +748,7 @@ def run_check(
         old.unlink()
     settings_file = work / "settings.json"
     _write_json(settings_file, dataclasses.asdict(settings))
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    paths = [str(site)] if site else []
-    env["PYTHONPATH"] = os.pathsep.join([*paths, str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])])
+    env = child_env(site)
     if not cpu:  # the check's own kernel cache: empty on a fresh machine, kept for a second run
         env.setdefault("WARP_CACHE_PATH", str(work / "warp_cache"))
     results = {

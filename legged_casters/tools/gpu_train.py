@@ -31,9 +31,10 @@ import threading
 import time
 from pathlib import Path
 
+from legged_casters.tools import gpu_check
 from legged_casters.tools.gpu_wheels import MIB
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = gpu_check.REPO
 PART_BYTES = 15 * MIB
 """Bytes per returned part: under the device tool's 16 MiB per file."""
 MAX_PARTS = 4
@@ -41,7 +42,8 @@ MAX_PARTS = 4
 PACK_MARGIN_S = 20.0
 """Seconds kept after the training for its clean stop and the packing."""
 MIN_DEADLINE_S = 60.0
-"""Shortest --deadline-s: the packing margin plus time for train.py to start at all."""
+"""Shortest --deadline-s (gpu.py checks it before installing): the packing margin plus time
+for train.py to start at all."""
 RUN_FOLDER = re.compile(r"^\[train\.py\] run folder (.+)$")
 SAFE_NAME = re.compile(r"[^A-Za-z0-9._-]")
 CHECKPOINT = re.compile(r"^model_(\d+)\.pt$")
@@ -93,19 +95,13 @@ def _tar(folder: str, paths: list[Path]) -> bytes:
 def run_training(
     train_args: list[str], out: Path, deadline_s: float, site: Path | None, warp_cache: Path, started: float
 ) -> int:
-    """train.py with `train_args` until it ends or the deadline (seconds after `started`);
+    """train.py with `train_args` until it ends or the deadline (seconds after `started`, at
+    least MIN_DEADLINE_S);
     then pack its run folder into `out`. Returns 0 when train.py ended by itself with 0 or
     stopped cleanly at the deadline, else its status (128 + signal when a signal ended it;
     1 when nothing could be packed)."""
-    if deadline_s < MIN_DEADLINE_S:
-        raise ValueError(
-            f"--deadline-s {deadline_s:g}: at least {MIN_DEADLINE_S:g} s (the last {PACK_MARGIN_S:g} s pack)"
-        )
     out.mkdir(parents=True, exist_ok=True)
-    env = dict(os.environ, PYTHONUNBUFFERED="1", WARP_CACHE_PATH=str(warp_cache))
-    env["PYTHONPATH"] = os.pathsep.join(
-        [*([str(site)] if site else []), str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])]
-    )
+    env = dict(gpu_check.child_env(site), WARP_CACHE_PATH=str(warp_cache))
     cmd = [sys.executable, str(REPO / "train.py"), *train_args]
     print(f"[gpu_train] {' '.join(cmd)}", flush=True)
     run_dir: list[Path] = []
