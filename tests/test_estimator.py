@@ -215,3 +215,42 @@ def test_the_shipped_estimator_policy_loads_everywhere_and_estimates_its_speed(n
     assert abs(res.mean["vx"] - 0.5) < 0.15 and res.falls == 0  # it holds the commanded 0.5 m/s
     assert res.extra["est_rms"] < 0.2  # and knows how fast it goes
     assert 0.02 < res.extra["est_cmd_gain"] < 0.5  # partly from the command it reads (docs/tasks.md)
+
+
+def _load_study():
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "estimator_study.py"
+    spec = importlib.util.spec_from_file_location("estimator_study", path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["estimator_study"] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_estimator_study_windows_are_newest_first_and_skip_resets():
+    study = _load_study()
+    n, steps, k = 2, 6, 1
+    proprio = torch.arange(steps, dtype=torch.float32).reshape(1, steps, k).repeat(n, 1, 1)  # value = step
+    vel = proprio.repeat(1, 1, 3)
+    cmds = torch.full((n, steps, 1), 9.0)
+    dones = torch.zeros(n, steps, dtype=torch.bool)
+    dones[1, 1] = True  # robot 1 reset after step 1: its windows that reach back over it are left out
+    x, y = study.windows(proprio, vel, cmds, dones, 3, range(3, steps), use_cmd=True)
+    # step by step, robots in order: robot 0 ends windows at 3, 4 and 5; robot 1 only at 5 (steps 3-5)
+    assert x.tolist() == [[3, 2, 1, 9], [4, 3, 2, 9], [5, 4, 3, 9], [5, 4, 3, 9]]
+    assert y[:, 0].tolist() == [3, 4, 5, 5]
+    x, _ = study.windows(proprio, vel, cmds, dones, 3, range(5, steps), use_cmd=False)
+    assert x.tolist() == [[5, 4, 3], [5, 4, 3]]
+
+
+def test_estimator_study_steady_commands():
+    study = _load_study()
+    assert study.parse_steady("1.5") == (1.5, 0.0, 0.0)
+    assert study.parse_steady(" y-0.4") == (0.0, -0.4, 0.0)
+    with pytest.raises(ValueError):
+        study.parse_steady("fast")
+    with pytest.raises(SystemExit):  # a usage error before anything runs
+        study.main(["--load_run", "x", "--checkpoint", "1", "--steady-commands", "1,fast"])
