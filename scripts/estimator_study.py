@@ -17,8 +17,10 @@ under the deterministic actor, so a second table (`--steady-commands`, on by def
 runs the deterministic actor (evaluation settings: no noise, pushes or randomisation) at
 constant commands for 8 s (`--steady-copies` robots each) and scores each fitted MLP on
 the last 4 s: per command the mean true speed against the mean estimate on the
-commanded axis, and the RMS. `--no-command` leaves the command and mode out of the
-MLP's input (estimator.skip_terms).
+commanded axis (vx unless the command is sideways), and per history length one RMS of
+the 3-vector error over all commands. `--no-command` leaves the command and the mode
+mask (the policy observation's columns before the proprioceptive terms) out of the MLP's
+input; the training's `estimator.skip_terms=[commands]` leaves out the command only.
 """
 
 from __future__ import annotations
@@ -46,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--steps", type=int, default=600)
     p.add_argument("--lengths", default="1,10,25,50", help="history lengths L (policy steps)")
     p.add_argument("--epochs", type=int, default=15)
-    p.add_argument("--no-command", action="store_true", help="leave the command and mode out of the MLP's input")
+    p.add_argument("--no-command", action="store_true", help="leave the command and mode mask out of the MLP's input")
     p.add_argument(
         "--steady-commands",
         default="-2,-1,-0.5,0.5,1,1.5,2,y0.4,y-0.4",
@@ -169,8 +171,8 @@ def steady_rollout(spec, env_cfg, train_cfg, ckpt_path: Path, commands, copies: 
 
 
 def score_steady(net, mu, sd, test, L: int, commands, copies: int, use_cmd: bool) -> list[tuple[float, float, float]]:
-    """Per steady command: (mean true speed, mean estimate, RMS of the 3-vector error) on its
-    commanded axis over the scoring window (windows with a fall inside are left out)."""
+    """Per steady command: (mean true speed, mean estimate) on its commanded axis and the RMS of
+    the 3-vector error, over the scoring window (windows with a fall inside are left out)."""
     (proprio, vel, cmds, dones), dt = test
     first = int(round(STEADY_FROM_S / dt))
     rows = []
@@ -182,7 +184,7 @@ def score_steady(net, mu, sd, test, L: int, commands, copies: int, use_cmd: bool
             continue
         with torch.no_grad():
             est = net((x - mu) / sd)
-        axis = 0 if c[0] else 1
+        axis = 1 if c[1] and not c[0] else 0
         rms = float((est - y).pow(2).sum(1).mean().sqrt())
         rows.append((float(y[:, axis].mean()), float(est[:, axis].mean()), rms))
     return rows
@@ -190,7 +192,7 @@ def score_steady(net, mu, sd, test, L: int, commands, copies: int, use_cmd: bool
 
 def print_steady(commands, rows, test) -> None:
     """The steady-skating table: one row per history length, one column per command."""
-    names = [f"vx {c[0]:+g}" if c[0] else f"vy {c[1]:+g}" for c in commands]
+    names = [f"vy {c[1]:+g}" if c[1] and not c[0] else f"vx {c[0]:+g}" for c in commands]
     print("\nSteady skating, deterministic actor (true speed / estimate on the commanded axis, m/s; RMS of the "
           "3-vector error):")  # fmt: skip
     print("| history L | RMS | " + " | ".join(names) + " |")
