@@ -67,16 +67,17 @@ def main(argv: list[str] | None = None) -> int:
     torch.manual_seed(0)
     run = Path(args.load_run)
     spec = registry.get_task("caster_omni")
-    env_cfg, train_cfg = common.run_configs(spec, run)
-    env_cfg = common.with_overrides(env_cfg, {"num_envs": args.num_envs, "sim.backend": "cpu", "sim.device": "cpu"}, "")
+    run_cfg, train_cfg = common.run_configs(spec, run)
+    env_cfg = common.with_overrides(run_cfg, {"num_envs": args.num_envs, "sim.backend": "cpu", "sim.device": "cpu"}, "")
     ckpt_path = common.find_checkpoint(run, args.checkpoint)
+    ckpt = common.load_checkpoint(ckpt_path, map_location="cpu")
     env = spec.env_class(env_cfg)
-    actor = export.load_actor(env, train_cfg, common.load_checkpoint(ckpt_path, map_location="cpu"), ckpt_path)
+    actor = export.load_actor(env, train_cfg, ckpt, ckpt_path)
     t0 = time.time()
     proprio, vel, cmds, dones = record(env, actor, args.steps, stochastic=True)
     env.close()
     print(f"[estimator_study] {args.steps} steps x {args.num_envs} robots in {time.time() - t0:.0f} s", flush=True)
-    test = steady_rollout(spec, common.run_configs(spec, run)[0], train_cfg, ckpt_path, steady, args.steady_copies)
+    test = steady_rollout(spec, run_cfg, train_cfg, ckpt, ckpt_path, steady, args.steady_copies)
     longest = max(lengths)
     use_cmd = not args.no_command
     print("| history L (steps) | windows | RMS of the velocity error (m/s) | vx | vy | std of vx |")
@@ -109,8 +110,13 @@ def main(argv: list[str] | None = None) -> int:
         if test is not None:
             steady_rows.append((L, score_steady(net, mu, sd, test, L, steady, args.steady_copies, use_cmd)))
     if test is not None:
-        print_steady(steady, steady_rows, test)
+        print_steady(steady, steady_rows)
     return 0
+
+
+def steady_axis(command) -> int:
+    """The axis a steady command is scored on: 1 (vy) for a sideways command, else 0 (vx)."""
+    return 1 if command[1] and not command[0] else 0
 
 
 def parse_steady(text: str) -> tuple[float, float, float]:
@@ -150,7 +156,7 @@ def windows(proprio, vel, cmds, dones, L: int, steps, use_cmd: bool) -> tuple[to
     return torch.cat(xs), torch.cat(ys)
 
 
-def steady_rollout(spec, env_cfg, train_cfg, ckpt_path: Path, commands, copies: int):
+def steady_rollout(spec, env_cfg, train_cfg, ckpt: dict, ckpt_path: Path, commands, copies: int):
     """The deterministic actor at each constant command (evaluation settings, four casters), or None."""
     if not commands:
         return None
@@ -159,7 +165,7 @@ def steady_rollout(spec, env_cfg, train_cfg, ckpt_path: Path, commands, copies: 
         for i, c in enumerate(commands)
     )  # fmt: skip
     env = spec.env_class(ev.eval_env_cfg(env_cfg, scenarios))
-    actor = export.load_actor(env, train_cfg, common.load_checkpoint(ckpt_path, map_location="cpu"), ckpt_path)
+    actor = export.load_actor(env, train_cfg, ckpt, ckpt_path)
     if hasattr(env, "set_mode"):
         env.set_mode("four_wheel", torch.arange(env.num_envs))
     env.set_commands(torch.zeros(env.num_envs, 3))
@@ -184,15 +190,15 @@ def score_steady(net, mu, sd, test, L: int, commands, copies: int, use_cmd: bool
             continue
         with torch.no_grad():
             est = net((x - mu) / sd)
-        axis = 1 if c[1] and not c[0] else 0
+        axis = steady_axis(c)
         rms = float((est - y).pow(2).sum(1).mean().sqrt())
         rows.append((float(y[:, axis].mean()), float(est[:, axis].mean()), rms))
     return rows
 
 
-def print_steady(commands, rows, test) -> None:
+def print_steady(commands, rows) -> None:
     """The steady-skating table: one row per history length, one column per command."""
-    names = [f"vy {c[1]:+g}" if c[1] and not c[0] else f"vx {c[0]:+g}" for c in commands]
+    names = [f"{('vx', 'vy')[steady_axis(c)]} {c[steady_axis(c)]:+g}" for c in commands]
     print("\nSteady skating, deterministic actor (true speed / estimate on the commanded axis, m/s; RMS of the "
           "3-vector error):")  # fmt: skip
     print("| history L | RMS | " + " | ".join(names) + " |")
