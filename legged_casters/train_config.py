@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from legged_casters.config import ConfigError
+from legged_casters.learning.estimator import TARGET_GROUP
 from legged_casters.learning.symmetry import MIRROR_FUNCTION
 
 
@@ -78,6 +79,10 @@ class SymmetryCfg:
     mirror_loss_coeff: float = field(default=4.0, metadata={"min": 0.0})
     """Weight of the mirror loss (the mean squared difference of actions, in action units);
     4 as in Yu, Turk and Liu (SIGGRAPH 2018, "Learning Symmetric and Low-Energy Locomotion")."""
+    estimator: bool = False
+    """The velocity estimator's regression mini-batches also hold the mirror image of each
+    sample (observation and target): an estimator that reads sideways speed as evenly to the
+    left as to the right. Needs a mode other than "none" and the estimator."""
 
 
 @dataclass
@@ -111,10 +116,17 @@ class TrainCfg:
 
     def _check_symmetry(self, env) -> None:
         mode = self.symmetry.mode
+        if self.symmetry.estimator and (mode == "none" or not self.estimator.hidden_dims):
+            raise ConfigError(
+                "symmetry.estimator=true mirrors the velocity estimator's samples: it needs symmetry.mode "
+                "(log, loss, augment or both) and the estimator (estimator.hidden_dims)"
+            )
         if mode == "none":
             return
         maps = env.mirror_maps()
         needed = ["policy"] + (["critic"] if mode in ("augment", "both") and "critic" in maps else [])
+        if self.symmetry.estimator:
+            needed.append(TARGET_GROUP)
         for group in needed:
             if maps.get(group) is None:
                 terms = env.observation_mirror()
@@ -220,5 +232,6 @@ class TrainCfg:
                 estimator_learning_rate=est.learning_rate,
                 estimator_epochs=est.epochs,
                 estimator_mini_batches=est.mini_batches,
+                estimator_mirror=self.symmetry.estimator,
             )
         return cfg

@@ -258,3 +258,38 @@ def test_evaluate_symmetrise_makes_any_policy_mirror_equivariant():
         assert not torch.allclose(one_sided(mirrored), mirror(one_sided(obs), index, sign), atol=1e-3)
         torch.testing.assert_close(sym(mirrored), mirror(sym(obs), index, sign))
     env.close()
+
+
+def test_symmetry_estimator_mirrors_the_estimators_samples_and_needs_a_mode():
+    """symmetry.estimator: each of the estimator's regression mini-batches holds every sample
+    and then its mirror image, target included (vy flips); without a mode it is refused."""
+    from legged_casters.learning.estimator import TARGET_GROUP
+    from legged_casters.learning.runner import CheckpointingRunner
+
+    env = registry.make_env("caster_omni", ["sim.backend=cpu", "seed=3"], num_envs=4)
+    _, cfg = registry.task_configs("caster_omni", train_overrides=["symmetry.estimator=true"])
+    with pytest.raises(ConfigError, match="symmetry.estimator=true .* needs symmetry.mode"):
+        cfg.for_env(env)
+    cfg.symmetry.mode = "log"
+    rsl = cfg.for_env(env)
+    assert rsl["algorithm"]["estimator_mirror"] is True
+    rsl["num_steps_per_env"] = 8
+    runner = CheckpointingRunner(env, rsl, log_dir=None, device="cpu", task="caster_omni")
+    alg = runner.alg
+    for _ in range(8):  # a rollout in storage, moving
+        with torch.no_grad():
+            obs, rew, dones, extras = env.step(alg.act(env.get_observations()))
+            alg.process_env_step(obs, rew, dones, extras)
+    seen = []
+    estimate = alg._raw_actor.estimate
+    alg._raw_actor.estimate = lambda o: (seen.append(o.clone()), estimate(o))[1]
+    alg.update_estimator()
+    assert seen
+    for batch in seen:
+        half = batch.batch_size[0] // 2
+        assert batch.batch_size[0] == 2 * half
+        torch.testing.assert_close(batch[half:], mirror_batch(env, batch[:half])[0][half:])
+        target = batch[TARGET_GROUP]
+        torch.testing.assert_close(target[half:, 1], -target[:half, 1])
+        torch.testing.assert_close(target[half:, [0, 2]], target[:half, [0, 2]])
+    env.close()

@@ -13,6 +13,9 @@ The regression target comes from the env as its own observation group (`TARGET_G
 which only the estimator's loss reads. `EstimatorPPO` runs rsl_rl's PPO update, then
 `epochs` passes of Adam on the estimator over the same rollout, and reports the loss
 (Loss/estimator_mse in TensorBoard) and the estimate's RMS error (Loss/estimator_rms, m/s).
+With `estimator_mirror` (train config `symmetry.estimator`) each of those mini-batches also
+holds every sample's mirror image (legged_casters.learning.symmetry), so the estimate of
+the mirrored state is taught to be the mirrored velocity.
 """
 
 from __future__ import annotations
@@ -61,9 +64,13 @@ class EstimatorPPO(PPO):
         estimator_learning_rate: float = 1e-3,
         estimator_epochs: int = 2,
         estimator_mini_batches: int = 4,
+        estimator_mirror: bool = False,
         **kwargs,
     ):
         super().__init__(*args, **kwargs)
+        if estimator_mirror and self.symmetry is None:
+            raise ValueError("estimator_mirror needs the algorithm's symmetry_cfg (its env's mirror maps)")
+        self.estimator_mirror = bool(estimator_mirror)
         estimator = getattr(self._raw_actor, "estimator", None)
         if estimator is None:
             raise ValueError("EstimatorPPO needs an actor with an estimator (policy.estimator_hidden_dims)")
@@ -84,6 +91,8 @@ class EstimatorPPO(PPO):
         total, count = 0.0, 0
         for batch in self.storage.mini_batch_generator(self.estimator_mini_batches, self.estimator_epochs):
             obs = batch.observations
+            if self.estimator_mirror:  # each sample and its mirror image (the target's vy flips with it)
+                obs, _ = self.symmetry.data_augmentation_func(env=self.symmetry.env, obs=obs)
             loss = torch.nn.functional.mse_loss(actor.estimate(obs), obs[TARGET_GROUP])
             self.estimator_optimizer.zero_grad()
             loss.backward()
