@@ -82,7 +82,8 @@ class SymmetryCfg:
     estimator: bool = False
     """The velocity estimator's regression mini-batches also hold the mirror image of each
     sample (observation and target): an estimator that reads sideways speed as evenly to the
-    left as to the right. Needs a mode other than "none" and the estimator."""
+    left as to the right. Independent of `mode` (with "none" the actor is trained as without
+    it); needs the estimator."""
 
 
 @dataclass
@@ -116,12 +117,12 @@ class TrainCfg:
 
     def _check_symmetry(self, env) -> None:
         mode = self.symmetry.mode
-        if self.symmetry.estimator and (mode == "none" or not self.estimator.hidden_dims):
+        if self.symmetry.estimator and not self.estimator.hidden_dims:
             raise ConfigError(
-                "symmetry.estimator=true mirrors the velocity estimator's samples: it needs symmetry.mode "
-                "(log, loss, augment or both) and the estimator (estimator.hidden_dims)"
+                "symmetry.estimator=true mirrors the velocity estimator's samples: it needs the estimator "
+                "(estimator.hidden_dims)"
             )
-        if mode == "none":
+        if mode == "none" and not self.symmetry.estimator:
             return
         maps = env.mirror_maps()
         needed = ["policy"] + (["critic"] if mode in ("augment", "both") and "critic" in maps else [])

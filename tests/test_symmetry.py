@@ -3,6 +3,8 @@ and PPO with symmetry.mode (legged_casters.learning.symmetry)."""
 
 from __future__ import annotations
 
+import copy
+
 import mujoco
 import numpy as np
 import pytest
@@ -262,16 +264,19 @@ def test_evaluate_symmetrise_makes_any_policy_mirror_equivariant():
 
 def test_symmetry_estimator_mirrors_the_estimators_samples_and_needs_a_mode():
     """symmetry.estimator: each of the estimator's regression mini-batches holds every sample
-    and then its mirror image, target included (vy flips); without a mode it is refused."""
+    and then its mirror image, target included (vy flips), with or without a symmetry mode;
+    without an estimator it is refused."""
     from legged_casters.learning.estimator import TARGET_GROUP
     from legged_casters.learning.runner import CheckpointingRunner
 
     env = registry.make_env("caster_omni", ["sim.backend=cpu", "seed=3"], num_envs=4)
     _, cfg = registry.task_configs("caster_omni", train_overrides=["symmetry.estimator=true"])
-    with pytest.raises(ConfigError, match="symmetry.estimator=true .* needs symmetry.mode"):
-        cfg.for_env(env)
-    cfg.symmetry.mode = "log"
-    rsl = cfg.for_env(env)
+    no_estimator = copy.deepcopy(cfg)
+    no_estimator.estimator.hidden_dims = ()
+    with pytest.raises(ConfigError, match="symmetry.estimator=true .* needs the estimator"):
+        no_estimator.for_env(env)
+    rsl = cfg.for_env(env)  # with symmetry.mode none: the actor's PPO is left as it is
+    assert "symmetry_cfg" not in rsl["algorithm"]
     assert rsl["algorithm"]["estimator_mirror"] is True
     rsl["num_steps_per_env"] = 8
     runner = CheckpointingRunner(env, rsl, log_dir=None, device="cpu", task="caster_omni")

@@ -25,6 +25,8 @@ from rsl_rl.algorithms import PPO
 from rsl_rl.modules import MLP
 from rsl_rl.utils.utils import reduce_gradients_in_buckets
 
+from legged_casters.learning.symmetry import mirror_batch
+
 TARGET_GROUP = "estimator_target"
 """Observation group holding the estimator's regression target (base_lin_vel, trunk frame, m/s)."""
 
@@ -68,9 +70,9 @@ class EstimatorPPO(PPO):
         **kwargs,
     ):
         super().__init__(*args, **kwargs)
-        if estimator_mirror and self.symmetry is None:
-            raise ValueError("estimator_mirror needs the algorithm's symmetry_cfg (its env's mirror maps)")
         self.estimator_mirror = bool(estimator_mirror)
+        self.mirror_env = self.symmetry.env if self.symmetry is not None else None
+        """The env whose mirror maps estimator_mirror uses (CheckpointingRunner sets it)."""
         estimator = getattr(self._raw_actor, "estimator", None)
         if estimator is None:
             raise ValueError("EstimatorPPO needs an actor with an estimator (policy.estimator_hidden_dims)")
@@ -92,7 +94,9 @@ class EstimatorPPO(PPO):
         for batch in self.storage.mini_batch_generator(self.estimator_mini_batches, self.estimator_epochs):
             obs = batch.observations
             if self.estimator_mirror:  # each sample and its mirror image (the target's vy flips with it)
-                obs, _ = self.symmetry.data_augmentation_func(env=self.symmetry.env, obs=obs)
+                if self.mirror_env is None:
+                    raise RuntimeError("estimator_mirror needs the env's mirror maps: set EstimatorPPO.mirror_env")
+                obs, _ = mirror_batch(self.mirror_env, obs)
             loss = torch.nn.functional.mse_loss(actor.estimate(obs), obs[TARGET_GROUP])
             self.estimator_optimizer.zero_grad()
             loss.backward()

@@ -31,6 +31,8 @@ class CheckpointingRunner(OnPolicyRunner):
         self.noise_std_schedule = [tuple(point) for point in train_cfg.get("noise_std_schedule") or ()]
         self.noise_std_dims = train_cfg.get("noise_std_schedule_dims")  # None: every action dimension
         super().__init__(env, train_cfg, log_dir=log_dir, device=device)
+        if getattr(self.alg, "estimator_mirror", False):  # symmetry.estimator: the maps come from the env
+            self.alg.mirror_env = env
         if self.noise_std_schedule:  # after each iteration's report, the std of the next one
             report = self.logger.log
 
