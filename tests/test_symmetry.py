@@ -262,7 +262,7 @@ def test_evaluate_symmetrise_makes_any_policy_mirror_equivariant():
     env.close()
 
 
-def test_symmetry_estimator_mirrors_the_estimators_samples_and_needs_a_mode():
+def test_symmetry_estimator_mirrors_the_estimators_samples_and_needs_an_estimator():
     """symmetry.estimator: each of the estimator's regression mini-batches holds every sample
     and then its mirror image, target included (vy flips), with or without a symmetry mode;
     without an estimator it is refused."""

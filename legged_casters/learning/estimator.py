@@ -71,7 +71,7 @@ class EstimatorPPO(PPO):
     ):
         super().__init__(*args, **kwargs)
         self.estimator_mirror = bool(estimator_mirror)
-        self.mirror_env = self.symmetry.env if self.symmetry is not None else None
+        self.mirror_env = None
         """The env whose mirror maps estimator_mirror uses (CheckpointingRunner sets it)."""
         estimator = getattr(self._raw_actor, "estimator", None)
         if estimator is None:
