@@ -72,10 +72,13 @@ class EstimatorCfg:
 class SymmetryCfg:
     """Left-right mirror symmetry in PPO (legged_casters.learning.symmetry)."""
 
-    mode: Literal["none", "log", "loss", "augment", "both"] = "none"
+    mode: Literal["none", "log", "loss", "augment", "both", "exact"] = "none"
     """"loss": a mirror loss on the actor's mean; "augment": every mini-batch also holds the
     mirrored samples (needs mirrorable actor and critic observations); "both"; "log": the
-    mirror loss is computed and logged (Loss/symmetry) but not learnt from."""
+    mirror loss is computed and logged (Loss/symmetry) but not learnt from; "exact": the actor
+    and its velocity estimator are symmetric by construction (PriorMLPModel's `mirror`: the
+    mean of the output and the mirror of the output for the mirrored observation), trained and
+    exported so."""
     mirror_loss_coeff: float = field(default=4.0, metadata={"min": 0.0})
     """Weight of the mirror loss (the mean squared difference of actions, in action units);
     4 as in Yu, Turk and Liu (SIGGRAPH 2018, "Learning Symmetric and Low-Energy Locomotion")."""
@@ -103,6 +106,8 @@ class TrainCfg:
         """to_rsl_rl() with what the env says about its actor (prior, observation columns)."""
         self._check_symmetry(env)
         cfg = self.to_rsl_rl(env.actor_prior(), env.policy_obs_columns())
+        if self.symmetry.mode == "exact":
+            cfg["actor"]["mirror"] = self._actor_mirror(env)
         if self.policy.noise_std_schedule_joints:
             cfg["noise_std_schedule_dims"] = self._scheduled_dims(list(env.layout.joints))
         return cfg
@@ -122,11 +127,20 @@ class TrainCfg:
                 "symmetry.estimator=true mirrors the velocity estimator's samples: it needs the estimator "
                 "(estimator.hidden_dims)"
             )
+        if mode == "exact" and self.symmetry.estimator:
+            raise ConfigError(
+                "symmetry.mode=exact makes the velocity estimator symmetric itself, so its mirrored samples teach it "
+                "nothing more: leave out symmetry.estimator (--train-set symmetry.estimator=false)"
+            )
+        if mode == "exact" and env.actor_prior() is None:
+            raise ConfigError(
+                f"symmetry.mode=exact needs an actor with a prior (PriorMLPModel); {type(env).__name__} has none"
+            )
         if mode == "none" and not self.symmetry.estimator:
             return
         maps = env.mirror_maps()
         needed = ["policy"] + (["critic"] if mode in ("augment", "both") and "critic" in maps else [])
-        if self.symmetry.estimator:
+        if self.symmetry.estimator or (mode == "exact" and self.estimator.hidden_dims):
             needed.append(TARGET_GROUP)
         for group in needed:
             if maps.get(group) is None:
@@ -136,6 +150,14 @@ class TrainCfg:
                 raise ConfigError(
                     f"symmetry.mode={mode}: the {group!r} observation terms {missing} have no mirror image{hint}"
                 )
+
+    def _actor_mirror(self, env) -> dict:
+        """symmetry.mode=exact: the mirror maps PriorMLPModel's `mirror` takes, as lists."""
+        maps = env.mirror_maps()
+        out = {"observation": maps["policy"], "action": env.action_mirror()}
+        if self.estimator.hidden_dims:
+            out["estimate"] = maps[TARGET_GROUP]
+        return {k: [[int(i) for i in index], [float(v) for v in sign]] for k, (index, sign) in out.items()}
 
     def _noise_std_schedule(self) -> list[list[float]]:
         p = self.policy
@@ -196,7 +218,7 @@ class TrainCfg:
         elif p.noise_std_schedule_joints:
             raise ConfigError("policy.noise_std_schedule_joints needs a policy.noise_std_schedule")
         sym = self.symmetry
-        if sym.mode != "none":
+        if sym.mode not in ("none", "exact"):  # exact lives in the actor (for_env), not in PPO
             cfg["algorithm"]["symmetry_cfg"] = {
                 "data_augmentation_func": MIRROR_FUNCTION,
                 "use_data_augmentation": sym.mode in ("augment", "both"),

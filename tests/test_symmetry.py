@@ -298,3 +298,60 @@ def test_symmetry_estimator_mirrors_the_estimators_samples_and_needs_an_estimato
         torch.testing.assert_close(target[half:, 1], -target[:half, 1])
         torch.testing.assert_close(target[half:, [0, 2]], target[:half, [0, 2]])
     env.close()
+
+
+def test_symmetry_exact_actor_is_mirror_equivariant_trained_and_exported(tmp_path):
+    """symmetry.mode=exact: the actor and its estimate are exact mirror images of themselves
+    for any weights and normaliser (the same actor without the maps is not), a checkpoint of
+    the plain actor loads into it, PPO trains it, and TorchScript and ONNX compute the same."""
+    import onnxruntime as ort
+
+    from legged_casters.learning.estimator import TARGET_GROUP
+    from legged_casters.learning.runner import CheckpointingRunner
+    from legged_casters.tools import export
+
+    env = registry.make_env("caster_omni", ["sim.backend=cpu", "seed=5"], num_envs=4)
+    _, cfg = registry.task_configs("caster_omni", train_overrides=["symmetry.mode=exact"])
+    both = copy.deepcopy(cfg)
+    both.symmetry.estimator = True
+    with pytest.raises(ConfigError, match="leave out symmetry.estimator"):
+        both.for_env(env)
+    rsl = cfg.for_env(env)
+    assert "symmetry_cfg" not in rsl["algorithm"]
+    assert set(rsl["actor"]["mirror"]) == {"observation", "action", "estimate"}
+    plain_cfg = copy.deepcopy(cfg)
+    plain_cfg.symmetry.mode = "none"
+    torch.manual_seed(0)
+    plain = export.build_actor(env, plain_cfg)
+    actor = export.build_actor(env, cfg)
+    obs = env.get_observations()
+    obs["policy"] = obs["policy"] + 0.3 * torch.randn_like(obs["policy"])  # not the mirror-symmetric reset
+    with torch.no_grad():
+        plain.obs_normalizer.update(obs["policy"] + 0.5)  # a normaliser that is not symmetric either
+        plain.eval()
+        actor.load_state_dict(plain.state_dict(), strict=True)
+        actor.eval()
+    mirrored = mirror_batch(env, obs, None)[0][4:]
+    action = [torch.tensor(v) for v in env.action_mirror()]
+    target = env.mirror_maps()[TARGET_GROUP]
+    with torch.no_grad():
+        assert not torch.allclose(plain(mirrored), mirror(plain(obs), *action), atol=1e-3)
+        torch.testing.assert_close(actor(mirrored), mirror(actor(obs), *action))
+        torch.testing.assert_close(actor.estimate(mirrored), mirror(actor.estimate(obs), *target))
+        paths = export.export_policy(actor, export.policy_metadata(env, "caster_omni", actor), tmp_path)
+        module = torch.jit.load(str(paths["torchscript"]))
+        torch.testing.assert_close(module(obs["policy"]), actor(obs), atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(module.estimate(obs["policy"]), actor.estimate(obs), atol=1e-5, rtol=1e-5)
+    (out,) = ort.InferenceSession(str(paths["onnx"])).run(None, {"obs": obs["policy"].numpy()})
+    np.testing.assert_allclose(out, actor(obs).detach().numpy(), atol=1e-5)
+    rsl["num_steps_per_env"] = 8
+    runner = CheckpointingRunner(env, rsl, log_dir=None, device="cpu", task="caster_omni")
+    runner.logger.log = lambda **kw: None
+    before = copy.deepcopy(runner.alg._raw_actor.state_dict())
+    runner.learn(num_learning_iterations=1)
+    trained = runner.alg._raw_actor
+    assert trained.mirrored and any(not torch.equal(before[k], v) for k, v in trained.state_dict().items())
+    with torch.no_grad():
+        trained.eval()
+        torch.testing.assert_close(trained(mirrored), mirror(trained(obs), *action))
+    env.close()

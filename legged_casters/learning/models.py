@@ -14,6 +14,14 @@ prior (a caster prior with speed feedback pushes for the error between the comma
 that estimate; it needs the estimator); with
 `actor_history: False` it reads only the current observation's terms (the estimator
 alone reads the proprioceptive history), which also makes the actor small.
+
+With `mirror` (train config `symmetry.mode=exact`) the actor is left-right symmetric by
+construction: its mean is the average of what the network gives for the observation and
+the mirror image of what it gives for the mirrored observation, and the velocity estimate
+likewise (the mirror maps of legged_casters.learning.symmetry). The mirrored actor's mean
+for the mirrored observation is then exactly the mirror of its mean, whatever the weights:
+a robot told to go straight has no side to drift to. Both halves go through the network
+in one batch of twice the rows; the export (legged_casters.tools.export) does the same.
 """
 
 from __future__ import annotations
@@ -26,6 +34,10 @@ from tensordict import TensorDict
 from legged_casters.envs.drive import DrivePrior
 from legged_casters.envs.gait import GaitPrior
 from legged_casters.learning.estimator import VelocityEstimator
+from legged_casters.learning.symmetry import mirror, symmetric_mean
+
+MIRRORED = ("observation", "action", "estimate")
+"""The maps of the actor's `mirror` dict: [index, sign] each (symmetry.mirror's convention)."""
 
 PRIORS = {"gait": GaitPrior, "drive": DrivePrior}
 """prior["kind"] -> module; a prior without a kind is the caster gait prior (older runs)."""
@@ -70,14 +82,19 @@ class PriorMLPModel(MLPModel):
 
     `estimator`: {"hidden_dims": [...], "out_dim": 3, "actor_history": bool,
     "history_slice": [start, stop]} (the proprio_history term's columns in the policy
-    observation; the MLP skips them when actor_history is false)."""
+    observation; the MLP skips them when actor_history is false).
+    `mirror`: {"observation": [index, sign], "action": [...], "estimate": [...]} (the last
+    only with an estimator): the actor is made exactly left-right symmetric."""
 
     def __init__(
         self, obs: TensorDict, obs_groups, obs_set: str, output_dim: int, prior: dict, estimator: dict | None = None,
-        **kwargs,
+        mirror: dict | None = None, **kwargs,
     ):  # fmt: skip
         self._estimator_cfg = estimator
         super().__init__(obs, obs_groups, obs_set, output_dim, **kwargs)
+        self.mirrored = mirror is not None
+        if mirror is not None:
+            self._register_mirror(mirror, output_dim, estimator)
         if self.distribution is not None and self.distribution.input_dim != output_dim:
             raise ValueError(
                 f"{type(self).__name__} adds the prior to the distribution's mean: it needs a distribution whose "
@@ -98,6 +115,31 @@ class PriorMLPModel(MLPModel):
             )
             self.register_buffer("mlp_columns", self._mlp_columns(), persistent=False)
 
+    def _register_mirror(self, maps: dict, output_dim: int, estimator: dict | None) -> None:
+        """The mirror maps as buffers <name>_mirror_index / _sign (not saved: they follow from the
+        env, and a checkpoint trained without them loads into a mirrored actor unchanged)."""
+        dims = {"observation": self.obs_dim, "action": output_dim}
+        if estimator is not None:
+            dims["estimate"] = int(estimator.get("out_dim", 3))
+        for name, dim in dims.items():
+            if name not in maps:
+                raise ValueError(f"the mirrored actor needs the {name!r} mirror map; got {sorted(maps)}")
+            index, sign = maps[name]
+            if sorted(index) != list(range(dim)) or len(sign) != dim:
+                raise ValueError(f"the {name!r} mirror map must permute its {dim} columns, got {len(index)}")
+            self.register_buffer(f"{name}_mirror_index", torch.as_tensor(index, dtype=torch.long), persistent=False)
+            self.register_buffer(f"{name}_mirror_sign", torch.as_tensor(sign, dtype=torch.float), persistent=False)
+
+    def _mirror(self, x: torch.Tensor, name: str) -> torch.Tensor:
+        return mirror(x, getattr(self, f"{name}_mirror_index"), getattr(self, f"{name}_mirror_sign"))
+
+    def _with_mirror(self, raw: torch.Tensor) -> torch.Tensor:
+        """(2n, obs_dim): the observations, then their mirror images (mirrored actor only)."""
+        return torch.cat([raw, self._mirror(raw, "observation")], dim=0)
+
+    def _symmetric(self, out: torch.Tensor, name: str) -> torch.Tensor:
+        return symmetric_mean(out, getattr(self, f"{name}_mirror_index"), getattr(self, f"{name}_mirror_sign"))
+
     def _mlp_columns(self) -> torch.Tensor:
         """Columns of the normalised observation the MLP reads (all unless the history is left to the estimator)."""
         cfg = self._estimator_cfg
@@ -112,13 +154,20 @@ class PriorMLPModel(MLPModel):
     def estimate(self, obs: TensorDict) -> torch.Tensor:
         """The estimator's output (n, out_dim), m/s, from the policy observation groups."""
         raw = torch.cat([obs[group] for group in self.obs_groups], dim=-1)
+        if self.mirrored:
+            return self._symmetric(self.estimator(self.obs_normalizer(self._with_mirror(raw))), "estimate")
         return self.estimator(self.obs_normalizer(raw))
 
     def mlp_input(self, normalised: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(the MLP's input, the detached velocity estimate or an (n, 0) tensor without an estimator)."""
+        """(the MLP's input, the detached velocity estimate or an (n, 0) tensor without an estimator).
+        Mirrored actor: `normalised` is _with_mirror's 2n rows, and the estimate of the second
+        half is the mirror of the first's symmetric estimate."""
         if self.estimator is None:
             return normalised, normalised[:, :0]
         estimate = self.estimator(normalised).detach()
+        if self.mirrored:
+            half = self._symmetric(estimate, "estimate")
+            estimate = torch.cat([half, self._mirror(half, "estimate")], dim=0)
         return torch.cat([normalised[:, self.mlp_columns], estimate], dim=-1), estimate
 
     def as_jit(self):
@@ -130,8 +179,12 @@ class PriorMLPModel(MLPModel):
     def forward(self, obs: TensorDict, masks=None, hidden_state=None, stochastic_output: bool = False) -> torch.Tensor:
         obs = unpad_trajectories(obs, masks) if masks is not None and not self.is_recurrent else obs
         raw = torch.cat([obs[group] for group in self.obs_groups], dim=-1)
+        if self.mirrored:
+            raw = self._with_mirror(raw)
         x, estimate = self.mlp_input(self.obs_normalizer(raw))
         mean = self.mlp(x) + self.prior(raw, estimate)
+        if self.mirrored:
+            mean = self._symmetric(mean, "action")
         if self.distribution is not None:
             if stochastic_output:
                 self.distribution.update(mean)

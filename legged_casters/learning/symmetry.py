@@ -47,6 +47,14 @@ def mirror(x: torch.Tensor, index: torch.Tensor, sign: torch.Tensor) -> torch.Te
     return x[:, index] * sign.to(x.dtype)
 
 
+def symmetric_mean(out: torch.Tensor, index: torch.Tensor, sign: torch.Tensor) -> torch.Tensor:
+    """(2n, d) outputs for n inputs followed by their mirror images -> (n, d): each output
+    averaged with the mirror image of its partner's (an exactly symmetric function whatever
+    produced `out`; symmetry.mode=exact)."""
+    n = out.shape[0] // 2
+    return 0.5 * (out[:n] + mirror(out[n:], index, sign))
+
+
 def mirror_observation(env, obs: TensorDict) -> TensorDict:
     """obs's mirror image, group by group; a group without a map is passed on unmirrored."""
     groups, _ = _maps(env)

@@ -33,6 +33,8 @@ from rsl_rl.modules import EmpiricalNormalization
 from rsl_rl.utils import resolve_class
 from torch import nn
 
+from legged_casters.learning.models import MIRRORED
+from legged_casters.learning.symmetry import mirror, symmetric_mean
 from legged_casters.robot import go2
 from legged_casters.tools import common
 from legged_casters.tools.common import CheckpointError, UsageError
@@ -51,7 +53,9 @@ class DeployedPolicy(nn.Module):
     Computes exactly what the training actor computes in its deterministic forward on the
     concatenated policy observation: x = (obs - mean) / (std + eps); with an estimator,
     the MLP reads x's kept columns and the estimate, else x; + prior(obs, estimate) -> head. The
-    TorchScript file also has `estimate(obs)`: the estimator's trunk velocity (m/s)."""
+    TorchScript file also has `estimate(obs)`: the estimator's trunk velocity (m/s). A mirrored
+    actor (symmetry.mode=exact) runs the observations and their mirror images as one batch and
+    averages as it does (legged_casters.learning.symmetry.symmetric_mean)."""
 
     def __init__(self, actor: nn.Module):
         super().__init__()
@@ -73,22 +77,39 @@ class DeployedPolicy(nn.Module):
         self.estimator = copy.deepcopy(estimator) if estimator is not None else None
         columns = actor.mlp_columns.clone() if estimator is not None else torch.zeros(0, dtype=torch.long)
         self.register_buffer("mlp_columns", columns)
+        self.mirrored = bool(getattr(actor, "mirrored", False))
+        for name in MIRRORED:  # symmetry.mode=exact: the actor's mirror maps (empty where unused)
+            for part, dtype in (("index", torch.long), ("sign", torch.float)):
+                attr = f"{name}_mirror_{part}"
+                value = getattr(actor, attr, None) if self.mirrored else None
+                self.register_buffer(attr, value.clone() if value is not None else torch.zeros(0, dtype=dtype))
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        if self.mirrored:  # the observations, then their mirror images (PriorMLPModel's mirrored actor)
+            obs = torch.cat([obs, mirror(obs, self.observation_mirror_index, self.observation_mirror_sign)], dim=0)
         x = (obs - self.obs_mean) / self.obs_denom
         estimate = x[:, :0]
         if self.estimator is not None:
             estimate = self.estimator(x)
+            if self.mirrored:
+                half = symmetric_mean(estimate, self.estimate_mirror_index, self.estimate_mirror_sign)
+                estimate = torch.cat([half, mirror(half, self.estimate_mirror_index, self.estimate_mirror_sign)], 0)
             x = torch.cat([x[:, self.mlp_columns], estimate], dim=-1)
         mean = self.mlp(x)
         if self.prior is not None:
             mean = mean + self.prior(obs, estimate)
+        if self.mirrored:
+            mean = symmetric_mean(mean, self.action_mirror_index, self.action_mirror_sign)
         return self.head(mean)
 
     @torch.jit.export
     def estimate(self, obs: torch.Tensor) -> torch.Tensor:
         """The velocity estimator's output (batch, 3): trunk-frame vx, vy, vz in m/s (empty without one)."""
         if self.estimator is not None:
+            if self.mirrored:
+                both = torch.cat([obs, mirror(obs, self.observation_mirror_index, self.observation_mirror_sign)], 0)
+                out = self.estimator((both - self.obs_mean) / self.obs_denom)
+                return symmetric_mean(out, self.estimate_mirror_index, self.estimate_mirror_sign)
             return self.estimator((obs - self.obs_mean) / self.obs_denom)
         return torch.zeros(obs.shape[0], 0)
 
