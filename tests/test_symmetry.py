@@ -316,6 +316,10 @@ def test_symmetry_exact_actor_is_mirror_equivariant_trained_and_exported(tmp_pat
     both.symmetry.estimator = True
     with pytest.raises(ConfigError, match="leave out symmetry.estimator"):
         both.for_env(env)
+    point = registry.make_env("go2_flat", ["sim.backend=cpu"], num_envs=1)
+    with pytest.raises(ConfigError, match="exact needs an actor with a prior"):
+        registry.task_configs("go2_flat", train_overrides=["symmetry.mode=exact"])[1].for_env(point)
+    point.close()
     rsl = cfg.for_env(env)
     assert "symmetry_cfg" not in rsl["algorithm"]
     assert set(rsl["actor"]["mirror"]) == {"observation", "action", "estimate"}
