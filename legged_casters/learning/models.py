@@ -34,7 +34,7 @@ from tensordict import TensorDict
 from legged_casters.envs.drive import DrivePrior
 from legged_casters.envs.gait import GaitPrior
 from legged_casters.learning.estimator import VelocityEstimator
-from legged_casters.learning.symmetry import mirror, symmetric_mean
+from legged_casters.learning.symmetry import symmetric_mean, with_mirror_image
 
 MIRRORED = ("observation", "action", "estimate")
 """The maps of the actor's `mirror` dict: [index, sign] each (symmetry.mirror's convention)."""
@@ -133,15 +133,8 @@ class PriorMLPModel(MLPModel):
             self.register_buffer(f"{name}_mirror_index", torch.as_tensor(index, dtype=torch.long), persistent=False)
             self.register_buffer(f"{name}_mirror_sign", torch.as_tensor(sign, dtype=torch.float), persistent=False)
 
-    def _mirror(self, x: torch.Tensor, name: str) -> torch.Tensor:
-        return mirror(x, getattr(self, f"{name}_mirror_index"), getattr(self, f"{name}_mirror_sign"))
-
-    def _with_mirror(self, raw: torch.Tensor) -> torch.Tensor:
-        """(2n, obs_dim): the observations, then their mirror images (mirrored actor only)."""
-        return torch.cat([raw, self._mirror(raw, "observation")], dim=0)
-
-    def _symmetric(self, out: torch.Tensor, name: str) -> torch.Tensor:
-        return symmetric_mean(out, getattr(self, f"{name}_mirror_index"), getattr(self, f"{name}_mirror_sign"))
+    def _map(self, name: str) -> tuple[torch.Tensor, torch.Tensor]:
+        return getattr(self, f"{name}_mirror_index"), getattr(self, f"{name}_mirror_sign")
 
     def _mlp_columns(self) -> torch.Tensor:
         """Columns of the normalised observation the MLP reads (all unless the history is left to the estimator)."""
@@ -158,19 +151,19 @@ class PriorMLPModel(MLPModel):
         """The estimator's output (n, out_dim), m/s, from the policy observation groups."""
         raw = torch.cat([obs[group] for group in self.obs_groups], dim=-1)
         if self.mirrored:
-            return self._symmetric(self.estimator(self.obs_normalizer(self._with_mirror(raw))), "estimate")
+            both = with_mirror_image(raw, *self._map("observation"))
+            return symmetric_mean(self.estimator(self.obs_normalizer(both)), *self._map("estimate"))
         return self.estimator(self.obs_normalizer(raw))
 
     def mlp_input(self, normalised: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(the MLP's input, the detached velocity estimate or an (n, 0) tensor without an estimator).
-        Mirrored actor: `normalised` is _with_mirror's 2n rows, and the estimate of the second
-        half is the mirror of the first's symmetric estimate."""
+        Mirrored actor: `normalised` is the 2n rows of with_mirror_image, and the estimate of the
+        second half is the mirror of the first's symmetric estimate."""
         if self.estimator is None:
             return normalised, normalised[:, :0]
         estimate = self.estimator(normalised).detach()
         if self.mirrored:
-            half = self._symmetric(estimate, "estimate")
-            estimate = torch.cat([half, self._mirror(half, "estimate")], dim=0)
+            estimate = with_mirror_image(symmetric_mean(estimate, *self._map("estimate")), *self._map("estimate"))
         return torch.cat([normalised[:, self.mlp_columns], estimate], dim=-1), estimate
 
     def as_jit(self):
@@ -183,11 +176,11 @@ class PriorMLPModel(MLPModel):
         obs = unpad_trajectories(obs, masks) if masks is not None and not self.is_recurrent else obs
         raw = torch.cat([obs[group] for group in self.obs_groups], dim=-1)
         if self.mirrored:
-            raw = self._with_mirror(raw)
+            raw = with_mirror_image(raw, *self._map("observation"))
         x, estimate = self.mlp_input(self.obs_normalizer(raw))
         mean = self.mlp(x) + self.prior(raw, estimate)
         if self.mirrored:
-            mean = self._symmetric(mean, "action")
+            mean = symmetric_mean(mean, *self._map("action"))
         if self.distribution is not None:
             if stochastic_output:
                 self.distribution.update(mean)

@@ -47,6 +47,11 @@ def mirror(x: torch.Tensor, index: torch.Tensor, sign: torch.Tensor) -> torch.Te
     return x[:, index] * sign.to(x.dtype)
 
 
+def with_mirror_image(x: torch.Tensor, index: torch.Tensor, sign: torch.Tensor) -> torch.Tensor:
+    """(n, d) -> (2n, d): the rows, then their mirror images (symmetry.mode=exact's batch)."""
+    return torch.cat([x, mirror(x, index, sign)], dim=0)
+
+
 def symmetric_mean(out: torch.Tensor, index: torch.Tensor, sign: torch.Tensor) -> torch.Tensor:
     """(2n, d) outputs for n inputs followed by their mirror images -> (n, d): each output
     averaged with the mirror image of its partner's (an exactly symmetric function whatever

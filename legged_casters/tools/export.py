@@ -34,7 +34,7 @@ from rsl_rl.utils import resolve_class
 from torch import nn
 
 from legged_casters.learning.models import MIRRORED
-from legged_casters.learning.symmetry import mirror, symmetric_mean
+from legged_casters.learning.symmetry import symmetric_mean, with_mirror_image
 from legged_casters.robot import go2
 from legged_casters.tools import common
 from legged_casters.tools.common import CheckpointError, UsageError
@@ -86,14 +86,14 @@ class DeployedPolicy(nn.Module):
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         if self.mirrored:  # the observations, then their mirror images (PriorMLPModel's mirrored actor)
-            obs = torch.cat([obs, mirror(obs, self.observation_mirror_index, self.observation_mirror_sign)], dim=0)
+            obs = with_mirror_image(obs, self.observation_mirror_index, self.observation_mirror_sign)
         x = (obs - self.obs_mean) / self.obs_denom
         estimate = x[:, :0]
         if self.estimator is not None:
             estimate = self.estimator(x)
             if self.mirrored:
                 half = symmetric_mean(estimate, self.estimate_mirror_index, self.estimate_mirror_sign)
-                estimate = torch.cat([half, mirror(half, self.estimate_mirror_index, self.estimate_mirror_sign)], 0)
+                estimate = with_mirror_image(half, self.estimate_mirror_index, self.estimate_mirror_sign)
             x = torch.cat([x[:, self.mlp_columns], estimate], dim=-1)
         mean = self.mlp(x)
         if self.prior is not None:
@@ -107,7 +107,7 @@ class DeployedPolicy(nn.Module):
         """The velocity estimator's output (batch, 3): trunk-frame vx, vy, vz in m/s (empty without one)."""
         if self.estimator is not None:
             if self.mirrored:
-                both = torch.cat([obs, mirror(obs, self.observation_mirror_index, self.observation_mirror_sign)], 0)
+                both = with_mirror_image(obs, self.observation_mirror_index, self.observation_mirror_sign)
                 out = self.estimator((both - self.obs_mean) / self.obs_denom)
                 return symmetric_mean(out, self.estimate_mirror_index, self.estimate_mirror_sign)
             return self.estimator((obs - self.obs_mean) / self.obs_denom)
