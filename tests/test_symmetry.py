@@ -342,7 +342,10 @@ def test_symmetry_exact_actor_is_mirror_equivariant_trained_and_exported(tmp_pat
         assert not torch.allclose(plain(mirrored), mirror(plain(obs), *action), atol=1e-3)
         torch.testing.assert_close(actor(mirrored), mirror(actor(obs), *action))
         torch.testing.assert_close(actor.estimate(mirrored), mirror(actor.estimate(obs), *target))
-        paths = export.export_policy(actor, export.policy_metadata(env, "caster_omni", actor), tmp_path)
+        meta = export.policy_metadata(env, "caster_omni", actor)
+        assert meta["symmetry"]["mode"] == "exact"  # policy.yaml says so
+        assert "symmetry" not in export.policy_metadata(env, "caster_omni", plain)
+        paths = export.export_policy(actor, meta, tmp_path)
         module = torch.jit.load(str(paths["torchscript"]))
         torch.testing.assert_close(module(obs["policy"]), actor(obs), atol=1e-5, rtol=1e-5)
         torch.testing.assert_close(module.estimate(obs["policy"]), actor.estimate(obs), atol=1e-5, rtol=1e-5)
@@ -359,3 +362,4 @@ def test_symmetry_exact_actor_is_mirror_equivariant_trained_and_exported(tmp_pat
         trained.eval()
         torch.testing.assert_close(trained(mirrored), mirror(trained(obs), *action))
     env.close()
+

@@ -187,6 +187,21 @@ def estimator_spec(actor: nn.Module | None, obs_columns: dict[str, tuple[int, in
     }
 
 
+def symmetry_spec(actor: nn.Module | None) -> dict:
+    """{"symmetry": ...} for a mirrored actor (symmetry.mode=exact), else {}."""
+    if actor is None or not getattr(actor, "mirrored", False):
+        return {}
+    return {
+        "symmetry": {
+            "mode": "exact",
+            "plane": "the trunk's sagittal plane (left <-> right)",
+            "note": "inside policy.pt / policy.onnx: the network averages its action for the observation "
+            "with the mirror image of its action for the mirrored observation, so the mirrored "
+            "observation gets exactly the mirrored action; the robot side feeds the observation as for any policy",
+        }
+    }
+
+
 def policy_metadata(env, task: str, actor: nn.Module | None = None) -> dict:
     """The deployment description (format_version 1), read from the env and its model."""
     model, cfg = env.model, env.cfg
@@ -241,6 +256,7 @@ def policy_metadata(env, task: str, actor: nn.Module | None = None) -> dict:
         **gait_clock(env),
         **({"history": env.history_spec()} if getattr(env, "history_spec", lambda: None)() else {}),
         **estimator_spec(actor, env.policy_obs_columns()),
+        **symmetry_spec(actor),
         "files": {"onnx": "policy.onnx", "torchscript": "policy.pt"},
         "onnx": {"input": ONNX_INPUT, "output": ONNX_OUTPUT},
     }
