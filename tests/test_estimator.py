@@ -198,7 +198,7 @@ def test_speed_set_checks_slalom_ramp_and_sweep_bars():
 @pytest.mark.parametrize(
     "name, history, reads_command",
     [("caster_omni_speed", 10, True), ("caster_omni_anneal", 10, True), ("caster_omni_clock", 10, True),
-     ("caster_omni_track", 50, False)],
+     ("caster_omni_track", 50, False), ("caster_omni_sym", 50, False)],
 )  # fmt: skip
 def test_the_shipped_estimator_policy_loads_everywhere_and_estimates_its_speed(name, history, reads_command):
     from legged_casters.deploy.policy import load_meta

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from legged_casters import registry
-from legged_casters.config import ConfigError
+from legged_casters.config import ConfigError, apply_overrides
 from legged_casters.envs.gait import GaitPriorCfg, gait_prior
 from legged_casters.learning.symmetry import mirror, mirror_batch
 from legged_casters.robot import build, go2
@@ -363,3 +363,33 @@ def test_symmetry_exact_actor_is_mirror_equivariant_trained_and_exported(tmp_pat
         torch.testing.assert_close(trained(mirrored), mirror(trained(obs), *action))
     env.close()
 
+
+def test_shipped_symmetric_policy_mirrors_its_action_and_says_so():
+    """resources/policies/caster_omni_sym (symmetry.mode=exact): the shipped TorchScript and
+    ONNX files give the mirrored observation exactly the mirrored action, and policy.yaml says
+    the network is symmetric; caster_omni_track (trained without it) does neither."""
+    import onnxruntime as ort
+    import yaml
+
+    from legged_casters.tools import common
+    from legged_casters.tools import evaluate as ev
+
+    for name, symmetric in (("caster_omni_sym", True), ("caster_omni_track", False)):
+        folder = common.SHIPPED_POLICIES / name
+        meta = yaml.safe_load((folder / "policy.yaml").read_text())
+        assert ("symmetry" in meta) == symmetric
+        _, spec, env_cfg, policy, _, _ = ev.load_exported(folder, None)
+        env = spec.env_class(apply_overrides(env_cfg, ["sim.backend=cpu", "noise.enabled=false", "num_envs=3"]))
+        obs = env.get_observations()
+        obs["policy"] = obs["policy"] + 0.3 * torch.randn_like(obs["policy"])
+        mirrored = mirror_batch(env, obs, None)[0][3:]
+        index, sign = (torch.tensor(v) for v in env.action_mirror())
+        with torch.no_grad():
+            same = torch.allclose(policy(mirrored), mirror(policy(obs), index, sign), atol=1e-5)
+        assert same == symmetric
+        if symmetric:
+            session = ort.InferenceSession(str(folder / "policy.onnx"))
+            (a,) = session.run(None, {"obs": obs["policy"].numpy()})
+            (b,) = session.run(None, {"obs": mirrored["policy"].numpy()})
+            np.testing.assert_allclose(b, mirror(torch.from_numpy(a), index, sign).numpy(), atol=1e-5)
+        env.close()
