@@ -168,6 +168,10 @@ def gait_clock(env) -> dict:
     }
 
 
+ROBOT_SIDE = "the robot side feeds the observation as for any policy"
+"""What policy.yaml's notes say of the parts built into the network (estimator, symmetry)."""
+
+
 def estimator_spec(actor: nn.Module | None, obs_columns: dict[str, tuple[int, int]] | None = None) -> dict:
     """{"estimator": ...} for an actor with a velocity estimator (inside the network), else {}.
     `obs_columns` (env.policy_obs_columns()) names the observation terms it does not read."""
@@ -182,7 +186,7 @@ def estimator_spec(actor: nn.Module | None, obs_columns: dict[str, tuple[int, in
             "frame": "trunk, m/s",
             "input": f"{what}, normalised; the actor's MLP reads its output, and so does "
             "the prior where it has speed_feedback",
-            "note": "inside policy.pt / policy.onnx: the robot side feeds the observation as for any policy",
+            "note": f"inside policy.pt / policy.onnx: {ROBOT_SIDE}",
         }
     }
 
@@ -197,7 +201,7 @@ def symmetry_spec(actor: nn.Module | None) -> dict:
             "plane": "the trunk's sagittal plane (left <-> right)",
             "note": "inside policy.pt / policy.onnx: the network averages its action for the observation "
             "with the mirror image of its action for the mirrored observation, so the mirrored "
-            "observation gets exactly the mirrored action; the robot side feeds the observation as for any policy",
+            f"observation gets exactly the mirrored action; {ROBOT_SIDE}",
         }
     }
 
