@@ -34,7 +34,7 @@ from tensordict import TensorDict
 from legged_casters.envs.drive import DrivePrior
 from legged_casters.envs.gait import GaitPrior
 from legged_casters.learning.estimator import VelocityEstimator
-from legged_casters.learning.symmetry import symmetric_mean, with_mirror_image
+from legged_casters.learning.symmetry import symmetric_mean, symmetric_pair, with_mirror_image
 
 MIRRORED = ("observation", "action", "estimate")
 """The maps of the actor's `mirror` dict: [index, sign] each (symmetry.mirror's convention)."""
@@ -121,10 +121,7 @@ class PriorMLPModel(MLPModel):
         dims = {"observation": self.obs_dim, "action": output_dim}
         if estimator is not None:
             dims["estimate"] = int(estimator.get("out_dim", 3))
-        for name in MIRRORED:
-            if name not in dims:
-                continue
-            dim = dims[name]
+        for name, dim in ((name, dims[name]) for name in MIRRORED if name in dims):
             if name not in maps:
                 raise ValueError(f"the mirrored actor needs the {name!r} mirror map; got {sorted(maps)}")
             index, sign = maps[name]
@@ -163,7 +160,7 @@ class PriorMLPModel(MLPModel):
             return normalised, normalised[:, :0]
         estimate = self.estimator(normalised).detach()
         if self.mirrored:
-            estimate = with_mirror_image(symmetric_mean(estimate, *self._map("estimate")), *self._map("estimate"))
+            estimate = symmetric_pair(estimate, *self._map("estimate"))
         return torch.cat([normalised[:, self.mlp_columns], estimate], dim=-1), estimate
 
     def as_jit(self):

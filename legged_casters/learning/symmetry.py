@@ -60,6 +60,12 @@ def symmetric_mean(out: torch.Tensor, index: torch.Tensor, sign: torch.Tensor) -
     return 0.5 * (out[:n] + mirror(out[n:], index, sign))
 
 
+def symmetric_pair(out: torch.Tensor, index: torch.Tensor, sign: torch.Tensor) -> torch.Tensor:
+    """(2n, d) -> (2n, d): symmetric_mean's n rows, then their mirror images (the mirrored
+    actor's velocity estimate for its batch of observations and their mirror images)."""
+    return with_mirror_image(symmetric_mean(out, index, sign), index, sign)
+
+
 def mirror_observation(env, obs: TensorDict) -> TensorDict:
     """obs's mirror image, group by group; a group without a map is passed on unmirrored."""
     groups, _ = _maps(env)

@@ -34,7 +34,7 @@ from rsl_rl.utils import resolve_class
 from torch import nn
 
 from legged_casters.learning.models import MIRRORED
-from legged_casters.learning.symmetry import symmetric_mean, with_mirror_image
+from legged_casters.learning.symmetry import symmetric_mean, symmetric_pair, with_mirror_image
 from legged_casters.robot import go2
 from legged_casters.tools import common
 from legged_casters.tools.common import CheckpointError, UsageError
@@ -92,8 +92,7 @@ class DeployedPolicy(nn.Module):
         if self.estimator is not None:
             estimate = self.estimator(x)
             if self.mirrored:
-                half = symmetric_mean(estimate, self.estimate_mirror_index, self.estimate_mirror_sign)
-                estimate = with_mirror_image(half, self.estimate_mirror_index, self.estimate_mirror_sign)
+                estimate = symmetric_pair(estimate, self.estimate_mirror_index, self.estimate_mirror_sign)
             x = torch.cat([x[:, self.mlp_columns], estimate], dim=-1)
         mean = self.mlp(x)
         if self.prior is not None:
@@ -105,13 +104,14 @@ class DeployedPolicy(nn.Module):
     @torch.jit.export
     def estimate(self, obs: torch.Tensor) -> torch.Tensor:
         """The velocity estimator's output (batch, 3): trunk-frame vx, vy, vz in m/s (empty without one)."""
-        if self.estimator is not None:
-            if self.mirrored:
-                both = with_mirror_image(obs, self.observation_mirror_index, self.observation_mirror_sign)
-                out = self.estimator((both - self.obs_mean) / self.obs_denom)
-                return symmetric_mean(out, self.estimate_mirror_index, self.estimate_mirror_sign)
-            return self.estimator((obs - self.obs_mean) / self.obs_denom)
-        return torch.zeros(obs.shape[0], 0)
+        if self.estimator is None:
+            return torch.zeros(obs.shape[0], 0)
+        if self.mirrored:
+            obs = with_mirror_image(obs, self.observation_mirror_index, self.observation_mirror_sign)
+        out = self.estimator((obs - self.obs_mean) / self.obs_denom)
+        if self.mirrored:
+            out = symmetric_mean(out, self.estimate_mirror_index, self.estimate_mirror_sign)
+        return out
 
 
 def build_actor(env, train_cfg, device: str = "cpu") -> nn.Module:
