@@ -121,7 +121,7 @@ class PriorMLPModel(MLPModel):
         dims = {"observation": self.obs_dim, "action": output_dim}
         if estimator is not None:
             dims["estimate"] = int(estimator.get("out_dim", 3))
-        for name, dim in ((name, dims[name]) for name in MIRRORED if name in dims):
+        for name, dim in dims.items():  # names of MIRRORED, the maps the export copies
             if name not in maps:
                 raise ValueError(f"the mirrored actor needs the {name!r} mirror map; got {sorted(maps)}")
             index, sign = maps[name]
