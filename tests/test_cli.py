@@ -753,3 +753,22 @@ def test_evaluate_checkpoints_bad_input_exits_2(run, capsys, argv, message):
     root, run_dir, _, _, _ = run
     assert evaluate.main(["--log_root", str(root), "--load_run", str(run_dir), *argv]) == 2
     assert message in capsys.readouterr().err
+
+
+def test_is_training_checkpoint_tells_exports_apart_without_warning(tmp_path):
+    """play.py/evaluate.py ask whether a .pt is a training checkpoint: an exported TorchScript
+    policy answers no from its archive alone (no TorchScript-dispatch warning), a training
+    checkpoint yes, a damaged file no."""
+    import warnings
+
+    ckpt = tmp_path / "model_1.pt"
+    torch.save({k: {} for k in common.REQUIRED_CHECKPOINT_KEYS[:3]} | {"iter": 1}, ckpt)
+    damaged = tmp_path / "model_2.pt"
+    damaged.write_bytes(b"not a checkpoint")
+    exported = common.SHIPPED_POLICIES / "caster_omni" / "policy.pt"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert common.is_training_checkpoint(exported) is False
+    assert [str(w.message) for w in caught] == []
+    assert common.is_training_checkpoint(ckpt) is True
+    assert common.is_training_checkpoint(damaged) is False

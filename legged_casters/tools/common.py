@@ -11,6 +11,7 @@ import shlex
 import subprocess
 import sys
 import tempfile
+import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -287,9 +288,23 @@ def load_checkpoint(path: str | Path, map_location: str = "cpu") -> dict:
     return data
 
 
+def _is_torchscript_archive(path: Path) -> bool:
+    """A TorchScript archive (torch.jit.save) holds compiled code and constants.pkl, which a
+    torch.save zip never does; read from the zip's directory, nothing loaded."""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            return any(n.endswith("/constants.pkl") or "/code/" in n for n in archive.namelist())
+    except (OSError, zipfile.BadZipFile):
+        return False
+
+
 def is_training_checkpoint(path: Path) -> bool:
     """Is `path` a training checkpoint (model_<n>.pt: networks, optimizer, iteration)
-    rather than an exported TorchScript policy? Loaded weights-only."""
+    rather than an exported TorchScript policy? Loaded weights-only; an exported policy is
+    told apart by its archive's contents first (torch.load would load it as TorchScript and
+    warn)."""
+    if _is_torchscript_archive(path):
+        return False
     try:
         data = torch.load(path, weights_only=True, map_location="cpu")
     except Exception:  # TorchScript archives, other files
