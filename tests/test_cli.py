@@ -11,6 +11,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -758,11 +759,9 @@ def test_evaluate_checkpoints_bad_input_exits_2(run, capsys, argv, message):
 def test_is_training_checkpoint_tells_exports_apart_without_warning(tmp_path):
     """play.py/evaluate.py ask whether a .pt is a training checkpoint: an exported TorchScript
     policy answers no from its archive alone (no TorchScript-dispatch warning), a training
-    checkpoint yes, a damaged file no."""
-    import warnings
-
+    checkpoint yes, a damaged file no; load_checkpoint says which an exported file is."""
     ckpt = tmp_path / "model_1.pt"
-    torch.save({k: {} for k in common.REQUIRED_CHECKPOINT_KEYS[:3]} | {"iter": 1}, ckpt)
+    torch.save(dict.fromkeys(common.REQUIRED_CHECKPOINT_KEYS, 1), ckpt)
     damaged = tmp_path / "model_2.pt"
     damaged.write_bytes(b"not a checkpoint")
     exported = common.SHIPPED_POLICIES / "caster_omni" / "policy.pt"
@@ -772,3 +771,5 @@ def test_is_training_checkpoint_tells_exports_apart_without_warning(tmp_path):
     assert [str(w.message) for w in caught] == []
     assert common.is_training_checkpoint(ckpt) is True
     assert common.is_training_checkpoint(damaged) is False
+    with pytest.raises(common.CheckpointError, match="exported TorchScript policy"):
+        common.load_checkpoint(exported)

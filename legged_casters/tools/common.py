@@ -269,11 +269,26 @@ def save_checkpoint_atomic(obj: dict, path: str | Path) -> Path:
 REQUIRED_CHECKPOINT_KEYS = ("actor_state_dict", "critic_state_dict", "optimizer_state_dict", "iter")
 
 
+def _is_torchscript_archive(path: Path) -> bool:
+    """A TorchScript archive (torch.jit.save) holds compiled code and constants.pkl, which a
+    torch.save zip never does; read from the zip's directory, nothing loaded."""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            return any(n.endswith("/constants.pkl") or "/code/" in n for n in archive.namelist())
+    except (OSError, zipfile.BadZipFile):
+        return False
+
+
 def load_checkpoint(path: str | Path, map_location: str = "cpu") -> dict:
     """A training checkpoint, loaded with weights_only=True (no code from the file is run)."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path} does not exist")
+    if _is_torchscript_archive(path):  # torch.load would load it as TorchScript, with a warning
+        raise CheckpointError(
+            f"{path} is an exported TorchScript policy, not a training checkpoint: play.py and evaluate.py take it "
+            "(or its folder) with --policy"
+        )
     try:
         data = torch.load(path, weights_only=True, map_location=map_location)
     except Exception as err:  # truncated zip, not a torch file, disallowed pickle content...
@@ -288,28 +303,14 @@ def load_checkpoint(path: str | Path, map_location: str = "cpu") -> dict:
     return data
 
 
-def _is_torchscript_archive(path: Path) -> bool:
-    """A TorchScript archive (torch.jit.save) holds compiled code and constants.pkl, which a
-    torch.save zip never does; read from the zip's directory, nothing loaded."""
-    try:
-        with zipfile.ZipFile(path) as archive:
-            return any(n.endswith("/constants.pkl") or "/code/" in n for n in archive.namelist())
-    except (OSError, zipfile.BadZipFile):
-        return False
-
-
 def is_training_checkpoint(path: Path) -> bool:
-    """Is `path` a training checkpoint (model_<n>.pt: networks, optimizer, iteration)
-    rather than an exported TorchScript policy? Loaded weights-only; an exported policy is
-    told apart by its archive's contents first (torch.load would load it as TorchScript and
-    warn)."""
-    if _is_torchscript_archive(path):
-        return False
+    """Is `path` a training checkpoint (model_<n>.pt: networks, optimizer, iteration) rather
+    than an exported TorchScript policy or another file? load_checkpoint decides."""
     try:
-        data = torch.load(path, weights_only=True, map_location="cpu")
-    except Exception:  # TorchScript archives, other files
+        load_checkpoint(path)
+    except CheckpointError:
         return False
-    return isinstance(data, dict) and all(k in data for k in REQUIRED_CHECKPOINT_KEYS)
+    return True
 
 
 # --- configs of a run ------------------------------------------------------------------------
