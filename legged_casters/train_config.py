@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 from legged_casters.config import ConfigError
 from legged_casters.learning.estimator import TARGET_GROUP
@@ -101,6 +101,12 @@ class TrainCfg:
     algorithm: PPOCfg = field(default_factory=PPOCfg)
     estimator: EstimatorCfg = field(default_factory=EstimatorCfg)
     symmetry: SymmetryCfg = field(default_factory=SymmetryCfg)
+    env_per_process: dict[str, list[Any]] = field(default_factory=dict)
+    """The task's default `train.py --set-per-process`: {env config key: [value of process 0,
+    1, ...]}, process r taking entry r modulo the list's length (so a 2-entry list alternates
+    over 4 processes). Applies to a new run of two or more processes (`--procs`) for each key
+    not given by --set-per-process or --set; one process keeps the env config as it is,
+    which is process 0's."""
 
     def for_env(self, env) -> dict:
         """to_rsl_rl() with what the env says about its actor (prior, observation columns)."""

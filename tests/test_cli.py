@@ -326,6 +326,18 @@ def test_play_takes_an_export_folder_like_evaluate_and_the_bridge(exported, tmp_
     assert any(tmp_path.glob("policy_*_velocity.png"))
 
 
+def test_a_task_without_runs_plays_its_shipped_policy_under_the_folders_task(tmp_path):
+    """play.py --task caster_omni_sym with no run under the log root plays the shipped
+    caster_omni_sym folder, whose policy.yaml names the task its run had (caster_omni)."""
+    argv = ["--task", "caster_omni_sym", "--log_root", str(tmp_path), "--no_video", "--headless"]
+    argv += ["--duration", "0.2", "--num_envs", "1", "--out", str(tmp_path / "out")]
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert play.main(argv) == 0, buf.getvalue()
+    assert "playing the shipped policy" in buf.getvalue() and "caster_omni_sym" in buf.getvalue()
+    assert any((tmp_path / "out").glob("policy_*_velocity.png"))
+
+
 # --- bad input fails before any simulation ----------------------------------------------------------------
 @pytest.mark.parametrize(
     ("argv", "message"),

@@ -238,3 +238,17 @@ def test_each_process_gets_its_own_entry_and_every_entry_is_checked(tmp_path):
         "sim.timestep": [0.005],
         "sim.decimation": [4],
     }
+
+    # a task's default (TrainCfg.env_per_process): new runs of 2+ processes, entry r % length,
+    # a key given per process or by --set is left to that; never on resume or in one process
+    assert train.per_process_for(args(), None, 2, per) == per
+    assert train.per_process_for(args(), None, 4, per) == {k: v + v for k, v in per.items()}
+    assert train.per_process_for(args(), None, 1, per) == {}
+    assert train.per_process_for(args(["sim.decimation=[5,10]"]), None, 2, per) == {
+        "sim.timestep": [0.005, 0.002],
+        "sim.decimation": [5, 10],
+    }
+    assert train.per_process_for(args([], ["sim.timestep=0.004"]), None, 2, per) == {"sim.decimation": [4, 10]}
+    saved_only = {"sim.timestep": [0.005, 0.005], "sim.decimation": [4, 4]}
+    (tmp_path / "run.yaml").write_text(yaml.safe_dump({"processes": 2, "env_set_per_process": saved_only}))
+    assert train.per_process_for(args(), tmp_path, 2, per) == saved_only

@@ -394,3 +394,37 @@ def test_shipped_symmetric_policy_mirrors_its_action_and_says_so():
             (b,) = session.run(None, {"obs": mirrored["policy"].numpy()})
             np.testing.assert_allclose(b, mirror(torch.from_numpy(a), index, sign).numpy(), atol=1e-5)
         env.close()
+
+
+def test_caster_omni_sym_task_is_the_shipped_policys_recipe():
+    """`python train.py --task caster_omni_sym` trains with the configs the shipped
+    caster_omni_sym was trained with (its env.yaml and train.yaml), apart from what a run
+    sets itself (its name, the envs per process, the device) and the task's own name; its
+    per-process physics steps are the run's (run.yaml's, recorded in the folder README)."""
+    import yaml
+
+    from legged_casters.config import to_dict
+    from legged_casters.tools import common
+
+    spec = registry.get_task("caster_omni_sym")
+    folder = common.SHIPPED_POLICIES / "caster_omni_sym"
+    run_set = {"num_envs", "sim.device", "seed", "run_name", "experiment_name", "env_per_process"}
+
+    def flat(d, pre=""):
+        out = {}
+        for k, v in d.items():
+            if isinstance(v, dict) and k not in ("scales", "env_per_process"):
+                out.update(flat(v, f"{pre}{k}."))
+            else:
+                out[pre + k] = v
+        return out
+
+    for name, cfg in (("env.yaml", spec.env_cfg), ("train.yaml", spec.train_cfg)):
+        ours = flat(yaml.safe_load(yaml.safe_dump(to_dict(cfg))))  # tuples as lists, as the file has them
+        shipped = flat(yaml.safe_load((folder / name).read_text()))
+        differ = {k for k in set(ours) | set(shipped) if ours.get(k) != shipped.get(k)} - run_set
+        assert not differ, {k: (ours.get(k), shipped.get(k)) for k in sorted(differ)}
+    shipped_train = yaml.safe_load((folder / "train.yaml").read_text())
+    assert spec.train_cfg.seed == shipped_train["seed"]
+    assert spec.train_cfg.env_per_process == {"sim.timestep": [0.005, 0.002], "sim.decimation": [4, 10]}
+    assert common.shipped_policy_dir("caster_omni_sym") == folder  # play/evaluate --task caster_omni_sym find it

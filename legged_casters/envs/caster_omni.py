@@ -448,6 +448,20 @@ def caster_omni_cfg() -> CasterOmniCfg:
     return cfg
 
 
+def caster_omni_sym_cfg() -> CasterOmniCfg:
+    """The env of `caster_omni_sym`, the recipe of runs 103 and 104 (docs/tasks.md, "Symmetric
+    by construction"): caster_omni with 1 s of history, actions applied 0-20 ms late, the
+    yaw-rate reward doubled and the vx range widening at a score of 0.5 (a constant error of
+    0.42 m/s) instead of 0.6. Its train config adds the exact mirror symmetry, the fixed and
+    then lowered exploration noise, and the 2 ms physics step in every second process."""
+    cfg = caster_omni_cfg()
+    cfg.history_length = 50
+    cfg.domain_rand.action_latency_range = (0.0, 0.02)
+    cfg.rewards.scales["tracking_ang_vel"] = 2.0
+    cfg.commands.curriculum_threshold = 0.5
+    return cfg
+
+
 def caster_omni_paper_cfg() -> CasterOmniCfg:
     """Table I as written (CasterOmniCfg's defaults) on the same 5 ms physics step."""
     cfg = CasterOmniCfg()
@@ -476,4 +490,20 @@ def caster_omni_train_cfg() -> TrainCfg:
     # 3 passes over each rollout instead of rsl_rl's 5: the update drops from 0.65 to 0.42 s of a
     # 1.8 s iteration and 15-minute runs learn as much per minute (docs/training_speed.md).
     cfg.algorithm.num_learning_epochs = 3
+    return cfg
+
+
+def caster_omni_sym_train_cfg() -> TrainCfg:
+    """caster_omni's training with the actor and estimator exactly left-right symmetric, the
+    estimator not reading the command, the exploration std fixed at 0.2 and lowered to 0.1
+    over iterations 750-900, and (with 2 or more processes, `--procs`) process 0 at 5 ms
+    physics, process 1 at 2 ms; seed 2 as run 104, the shipped `caster_omni_sym`."""
+    cfg = caster_omni_train_cfg()
+    cfg.experiment_name = "caster_omni_sym"
+    cfg.seed = 2
+    cfg.policy.learn_noise_std = False
+    cfg.policy.noise_std_schedule = ((750, 0.2), (900, 0.1))
+    cfg.estimator.skip_terms = ("commands",)
+    cfg.symmetry.mode = "exact"
+    cfg.env_per_process = {"sim.timestep": [0.005, 0.002], "sim.decimation": [4, 10]}
     return cfg

@@ -1023,7 +1023,8 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
                     "--stochastic needs a training checkpoint; no run was found (train one first)"
                 ) from None
             print(f"[{PROG}] no run found: evaluating the shipped policy {shipped}")
-            task, spec, env_cfg, policy, label, dim = load_exported(shipped, args.task)
+            # its policy.yaml names its task (caster_omni_sym's folder: caster_omni, whose run it came from)
+            task, spec, env_cfg, policy, label, dim = load_exported(shipped, None)
             sel = None
         if sel is not None:
             from legged_casters.tools.export import load_actor

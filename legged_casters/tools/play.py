@@ -101,7 +101,8 @@ def _resolve_source(args: argparse.Namespace, default_log_root: Path | None) -> 
             if shipped is None:
                 raise
             print(f"[play.py] no training run found: playing the shipped policy {shipped / 'policy.pt'}")
-            args.policy = str(shipped / "policy.pt")
+            # its policy.yaml names its task (caster_omni_sym's folder: caster_omni, whose run it came from)
+            args.policy, args.task = str(shipped / "policy.pt"), None
             return _resolve_source(args, default_log_root)
         out = Path(args.out) if args.out else sel.run_dir / "play"
         label = f"{sel.ckpt_path.stem}"

@@ -186,15 +186,25 @@ def _flags(per_process: dict[str, list]) -> str:
     return " ".join(f"--set-per-process '{k}=[{','.join(map(str, v))}]'" for k, v in per_process.items())
 
 
-def per_process_for(args: argparse.Namespace, run_dir: Path | None, world: int) -> dict[str, list]:
+def per_process_for(
+    args: argparse.Namespace, run_dir: Path | None, world: int, task_default: dict[str, list] | None = None
+) -> dict[str, list]:
     """The per-process lists of this invocation: --set-per-process as given; on --resume also
-    the run's own (run.yaml) for every key not given anew, neither per process nor by --set
-    (which makes every process alike)."""
+    the run's own (run.yaml), and on a new run of 2+ processes the task's
+    (`TrainCfg.env_per_process`, entry r % its length for process r), for every key not given
+    anew, neither per process nor by --set (which makes every process alike)."""
     given = parse_per_process(args.env_set_per_process, world)
-    if run_dir is None:
-        return given
-    saved = common.read_run_info(run_dir).get(PER_PROCESS_KEY) or {}
     set_keys = {item.partition("=")[0].strip() for item in args.env_set}
+    if run_dir is None:
+        if world < 2:
+            return given
+        default = {
+            k: [v[r % len(v)] for r in range(world)]
+            for k, v in (task_default or {}).items()
+            if v and k not in given and k not in set_keys
+        }
+        return {**default, **given}
+    saved = common.read_run_info(run_dir).get(PER_PROCESS_KEY) or {}
     kept = {k: list(v) for k, v in saved.items() if k not in given and k not in set_keys}
     if kept and any(len(v) != world for v in kept.values()):
         n = len(next(iter(kept.values())))
@@ -288,9 +298,15 @@ def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Pa
 
     env_cfg = common.with_overrides(env_cfg, args.env_set, "--set")
     train_cfg = common.with_overrides(train_cfg, args.train_set, "--train-set")
-    per_process = per_process_for(args, run_dir, world)
+    per_process = per_process_for(args, run_dir, world, train_cfg.env_per_process)
     if per_process and rank == 0:
         print(f"[{PROG}] per process: {_flags(per_process)}")
+    elif run_dir is None and world == 1 and train_cfg.env_per_process:
+        print(
+            f"[{PROG}] note: task {task} varies {', '.join(train_cfg.env_per_process)} between the processes of a "
+            f"--procs run ({_flags(train_cfg.env_per_process)}); this run has one process and keeps process 0's "
+            "config (train on the CPU with --procs 2 or auto for the mix)"
+        )
     env_cfg = process_env_cfg(env_cfg, per_process, rank, world)
     env_fields = {"sim.backend": args.sim_backend, "sim.device": device}
     if args.num_envs is not None:
@@ -401,9 +417,11 @@ def total_envs(args: argparse.Namespace, spec, default_log_root: Path | None) ->
 def check_process_configs(args: argparse.Namespace, spec, default_log_root: Path | None) -> None:
     """What every worker of --procs will check of its config, checked once in the launcher."""
     run_dir = _resume_dir(args, spec, default_log_root) if args.resume else None
-    env_cfg, _ = common.run_configs(spec, run_dir)
+    env_cfg, train_cfg = common.run_configs(spec, run_dir)
     env_cfg = common.with_overrides(env_cfg, args.env_set, "--set")
-    process_env_cfg(env_cfg, per_process_for(args, run_dir, args.procs), 0, args.procs)
+    train_cfg = common.with_overrides(train_cfg, args.train_set, "--train-set")
+    per_process = per_process_for(args, run_dir, args.procs, train_cfg.env_per_process)
+    process_env_cfg(env_cfg, per_process, 0, args.procs)
 
 
 def launch_procs(args: argparse.Namespace, argv: list[str], default_log_root: Path | None) -> int:
