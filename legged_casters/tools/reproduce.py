@@ -382,7 +382,7 @@ def fig9(out: Path, quick: bool, policy: str = DEFAULT_CASTER) -> Result:
         notes.append(
             "Where ours differs: the shipped caster policy was never asked for more than 1 m/s in training (its "
             "command curriculum, which may widen vx to 4 m/s, never did: linear tracking stayed below the 80 % "
-            "threshold), and it skates at about 0.9 m/s whatever it is told (README, evaluation table). The "
+            "threshold), and it skates at about 0.9 m/s whatever it is told (docs/policies.md, evaluation table). The "
             "policy, not the simulator, is the gap to the paper's 4.1 m/s: the prior alone, its parameters "
             'searched open loop, skates 3.5 m/s backwards (docs/tasks.md, "The robot\'s top speed, open loop").'
         )
@@ -668,7 +668,7 @@ def slalom(out: Path, quick: bool, policy: str = DEFAULT_CASTER) -> Result:
         [(name, _label("Fig. 1 / Fig. 8", policy) + ": trunk path through the poles (green: passed), and the joints")],
         [
             "The rule turns the robot (wz) rather than commanding sideways speed"
-            + (": the default caster policy's sideways tracking is weak (README)." if policy == DEFAULT_CASTER else ".")
+            + (": the default caster policy's sideways tracking is weak (docs/policies.md)." if policy == DEFAULT_CASTER else ".")
         ],
     )
 
@@ -848,7 +848,7 @@ def write_page(results: list[Result], out: Path, figures: Path, seconds: float, 
         "(MuJoCo, our caster of 50 mm wheels); the paper's numbers are from the real robot. The caster rows are "
         f"the default policy's (`{DEFAULT_CASTER}`); rows and figures marked "
         + ", ".join(f"({p})" for p in SPEED_POLICIES)
-        + ' repeat the flat-ground experiments with that shipped policy (README, "Learning to skate"), which '
+        + ' repeat the flat-ground experiments with that shipped policy (docs/policies.md), which '
         "has never seen a hill and so is not run around the loop.",
         "",
         "| experiment | paper | ours | how measured |",
