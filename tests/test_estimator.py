@@ -218,6 +218,7 @@ def test_the_shipped_estimator_policy_loads_everywhere_and_estimates_its_speed(n
     e.close()
     assert abs(res.mean["vx"] - 0.5) < 0.15 and res.falls == 0  # it holds the commanded 0.5 m/s
     assert res.extra["est_rms"] < 0.2  # and knows how fast it goes
+    assert abs(res.extra["est_vx"] - res.mean["vx"]) < res.extra["est_rms"] + 0.02  # its mean within its RMS
     if reads_command:
         assert 0.02 < res.extra["est_cmd_gain"] < 0.5  # partly from the command it reads (docs/tasks.md)
     else:  # estimator.skip_terms [commands]: the command cannot move its estimate

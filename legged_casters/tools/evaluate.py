@@ -336,7 +336,9 @@ def run_scenarios(
     """Run `policy` (TensorDict obs -> actions) on `env` (an evaluation env with one env
     per scenario copy) through `scenarios`; return one result per scenario. `estimator`
     (TensorDict obs -> (n, 3) trunk velocity estimate, m/s): its RMS error per scenario
-    (extra `est_rms`), and with `command_gain` how far its vx moves per m/s of commanded
+    (extra `est_rms`) and the mean vx it estimates (`est_vx`, beside the measured mean vx:
+    a robot that stands under a small command while its estimate reads the command shows
+    it), and with `command_gain` how far its vx moves per m/s of commanded
     vx in its input (extra `est_cmd_gain`: the estimate again with the vx command
     CMD_PROBE m/s higher; 0 for an estimator that does not read the command)."""
     dev = env.device
@@ -365,6 +367,7 @@ def run_scenarios(
     swivel_log = torch.zeros(steps, n, 4) if hasattr(env, "swivel_vel") else None
     yaw_log = torch.zeros(steps, n)
     est_log = torch.zeros(steps, n) if estimator is not None else None  # squared estimate error
+    est_vx_log = torch.zeros(steps, n) if estimator is not None else None  # the estimate's vx
     gain_log = torch.zeros(steps, n) if estimator is not None and command_gain else None
     if gain_log is not None:
         cmd_col, cmd_scale = env.policy_obs_slices()["commands"]  # the vx command's column and scale
@@ -388,6 +391,7 @@ def run_scenarios(
             if est_log is not None:  # the estimate the actor used for this step's action
                 est = estimator(obs).cpu()
                 est_log[k] = (est - env.base_lin_vel.cpu()).pow(2).sum(dim=1)
+                est_vx_log[k] = est[:, 0]
             if gain_log is not None:
                 shifted = obs.clone()
                 shifted["policy"][:, cmd_col] += CMD_PROBE * cmd_scale
@@ -439,6 +443,7 @@ def run_scenarios(
             r.extra["vx_before_step"] = before
         if est_log is not None:
             r.extra["est_rms"] = float(est_log[k0:k1, cols].mean().sqrt())
+            r.extra["est_vx"] = float(est_vx_log[k0:k1, cols].mean())
         if gain_log is not None:
             r.extra["est_cmd_gain"] = float(gain_log[k0:k1, cols].mean())
         if s.kind == "slalom":

@@ -668,7 +668,11 @@ def slalom(out: Path, quick: bool, policy: str = DEFAULT_CASTER) -> Result:
         [(name, _label("Fig. 1 / Fig. 8", policy) + ": trunk path through the poles (green: passed), and the joints")],
         [
             "The rule turns the robot (wz) rather than commanding sideways speed"
-            + (": the default caster policy's sideways tracking is weak (docs/policies.md)." if policy == DEFAULT_CASTER else ".")
+            + (
+                ": the default caster policy's sideways tracking is weak (docs/policies.md)."
+                if policy == DEFAULT_CASTER
+                else "."
+            )
         ],
     )
 
@@ -848,7 +852,7 @@ def write_page(results: list[Result], out: Path, figures: Path, seconds: float, 
         "(MuJoCo, our caster of 50 mm wheels); the paper's numbers are from the real robot. The caster rows are "
         f"the default policy's (`{DEFAULT_CASTER}`); rows and figures marked "
         + ", ".join(f"({p})" for p in SPEED_POLICIES)
-        + ' repeat the flat-ground experiments with that shipped policy (docs/policies.md), which '
+        + " repeat the flat-ground experiments with that shipped policy (docs/policies.md), which "
         "has never seen a hill and so is not run around the loop.",
         "",
         "| experiment | paper | ours | how measured |",
