@@ -30,6 +30,10 @@ class PolicyCfg:
     """Correlation in time of the exploration noise, per control step: 0 draws white noise
     (rsl_rl's GaussianDistribution); rho > 0 draws it from an AR(1) process with the same
     std (legged_casters.learning.noise), e.g. 0.9 for a time constant of about 10 steps."""
+    noise_free_fraction: float = field(default=0.0, metadata={"min": 0.0, "max": 0.9})
+    """Share of each process's envs (the last ones) that act with the mean action during the
+    rollout, as the deployed actor does, so that PPO's batch and the velocity estimator's
+    samples also hold what the noise-free robot does; 0: every env explores."""
     obs_normalization: bool = True
     critic_history: bool = True
     """Whether the critic's MLP reads the actor's proprioceptive history (it has the privileged state)."""
@@ -214,10 +218,11 @@ class TrainCfg:
             },
             "algorithm": {"class_name": "rsl_rl.algorithms.PPO", **vars(self.algorithm)},
         }
-        if p.noise_correlation > 0.0:
+        if p.noise_correlation > 0.0 or p.noise_free_fraction > 0.0:
             cfg["actor"]["distribution_cfg"].update(
                 class_name="legged_casters.learning.noise.CorrelatedGaussianDistribution",
                 correlation=p.noise_correlation,
+                quiet_fraction=p.noise_free_fraction,
             )
         if p.noise_std_schedule:
             cfg["noise_std_schedule"] = self._noise_std_schedule()

@@ -358,6 +358,38 @@ def test_correlated_noise_keeps_the_marginal_and_correlates_the_rollout():
             CorrelatedGaussianDistribution(3, correlation=bad)
 
 
+def test_noise_free_fraction_keeps_the_last_rows_at_the_mean_in_the_rollout_only():
+    """policy.noise_free_fraction f: in a rollout draw (no gradients) the last round(f n) rows
+    are the mean exactly and the others explore with the configured std (white, or AR(1) with
+    the correlation); PPO's mini-batch draws (gradients on) explore in every row; to_rsl_rl
+    selects the distribution for f > 0 alone; f outside [0, 1) is refused."""
+    from legged_casters.learning.noise import CorrelatedGaussianDistribution
+
+    torch.manual_seed(0)
+    mean, std = torch.full((8, 3), 0.5), 0.2
+    for rho in (0.0, 0.9):
+        dist = CorrelatedGaussianDistribution(3, correlation=rho, quiet_fraction=0.25, init_std=std, learn_std=False)
+        for _ in range(3):
+            with torch.inference_mode():
+                dist.update(mean)
+                draw = dist.sample()
+            assert torch.equal(draw[6:], mean[6:])  # 2 of 8 rows act with the mean
+            assert (draw[:6] != mean[:6]).all()
+    batch = torch.full((8, 3), 0.5, requires_grad=True)
+    dist.update(batch)
+    assert (dist.sample()[6:] != 0.5).all()  # mini-batch draws: every row explores
+    from legged_casters.train_config import TrainCfg
+
+    cfg = TrainCfg()
+    cfg.policy.noise_free_fraction = 0.25
+    made = cfg.to_rsl_rl()["actor"]["distribution_cfg"]
+    assert made["class_name"].endswith("CorrelatedGaussianDistribution") and made["quiet_fraction"] == 0.25
+    assert made["correlation"] == 0.0
+    for bad in (-0.1, 1.0):
+        with pytest.raises(ValueError, match="noise-free fraction"):
+            CorrelatedGaussianDistribution(3, quiet_fraction=bad)
+
+
 def test_noise_correlation_selects_the_correlated_distribution(tmp_path):
     """--train-set policy.noise_correlation=0.9 trains with CorrelatedGaussianDistribution (the
     checkpoint has the same keys as with white noise, so play/export/evaluate load it); above

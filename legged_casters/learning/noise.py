@@ -1,4 +1,4 @@
-"""Exploration noise that is correlated in time.
+"""Exploration noise that is correlated in time, or absent for a share of the envs.
 
 On casters the exploration noise itself propels and turns the robot: white noise on
 the joint targets, drawn anew every control step, is a fast leg oscillation, and the
@@ -18,6 +18,15 @@ ICLR 2023, "Pink Noise Is All You Need", and Korenkevych et al., IJCAI 2019,
 "Autoregressive Policies for Continuous Control Deep Reinforcement Learning", use
 temporally correlated exploration the same way.)
 
+A share of the envs can also act without any exploration noise (`quiet_fraction`, config
+`policy.noise_free_fraction`): the last rows of each rollout batch take the mean action,
+as the deployed actor does. On casters the deterministic actor can do something the noisy
+one never shows (stand still under a small command that the noise would have skated), and
+the velocity estimator, trained on the rollout, only learns what the rollout shows
+(docs/tasks.md, "Why it stands under +0.25 m/s"). For PPO these rows cost nothing but
+their share of the batch: at a = mean the log-probability's gradient with respect to the
+mean is zero, and the critic learns their returns as any others.
+
 The process advances only for samples drawn without gradients (the rollout, and
 `scripts/evaluate.py --stochastic`): PPO's update also calls sample() on its
 mini-batches, with gradients on, and those draws are discarded; they get white noise
@@ -35,23 +44,31 @@ from rsl_rl.modules.distribution import GaussianDistribution
 
 
 class CorrelatedGaussianDistribution(GaussianDistribution):
-    """rsl_rl's GaussianDistribution whose samples follow an AR(1) process per action dimension."""
+    """rsl_rl's GaussianDistribution whose rollout samples follow an AR(1) process per action
+    dimension, with the last `quiet_fraction` of the batch's rows at the mean."""
 
-    def __init__(self, output_dim: int, correlation: float = 0.0, **kwargs) -> None:
+    def __init__(self, output_dim: int, correlation: float = 0.0, quiet_fraction: float = 0.0, **kwargs) -> None:
         super().__init__(output_dim, **kwargs)
         if not 0.0 <= correlation < 1.0:
             raise ValueError(f"the noise correlation must lie in [0, 1), got {correlation}")
+        if not 0.0 <= quiet_fraction < 1.0:
+            raise ValueError(f"the noise-free fraction must lie in [0, 1), got {quiet_fraction}")
         self.correlation = float(correlation)
+        self.quiet_fraction = float(quiet_fraction)
         self._eps: torch.Tensor | None = None
 
     def sample(self) -> torch.Tensor:
-        if torch.is_grad_enabled() or self.correlation == 0.0:  # PPO's mini-batches, or white noise
-            return super().sample()
+        if torch.is_grad_enabled() or (self.correlation == 0.0 and self.quiet_fraction == 0.0):
+            return super().sample()  # PPO's mini-batches, or plain white noise
         dist = self._distribution
         if dist is None:
             raise RuntimeError("sample() before update(): the distribution has no mean yet")
-        fresh = torch.randn_like(dist.mean)
-        prev, rho = self._eps, self.correlation
-        same = prev is not None and prev.shape == fresh.shape
-        self._eps = rho * prev + math.sqrt(1.0 - rho * rho) * fresh if same else fresh
-        return dist.mean + dist.stddev * self._eps
+        eps = torch.randn_like(dist.mean)
+        if self.correlation > 0.0:
+            prev, rho = self._eps, self.correlation
+            same = prev is not None and prev.shape == eps.shape
+            eps = self._eps = rho * prev + math.sqrt(1.0 - rho * rho) * eps if same else eps
+        quiet = int(round(self.quiet_fraction * eps.shape[0]))
+        if quiet:
+            eps = torch.cat([eps[: eps.shape[0] - quiet], torch.zeros_like(eps[:quiet])])
+        return dist.mean + dist.stddev * eps

@@ -133,6 +133,10 @@ def load_actor(env, train_cfg, ckpt: dict, ckpt_path: Path, device: str = "cpu")
             + " ".join(first[:3])[:400]
         ) from None
     actor.eval()
+    if getattr(actor, "distribution", None) is not None and hasattr(actor.distribution, "quiet_fraction"):
+        # policy.noise_free_fraction shapes training rollouts; a loaded actor's rows are scenarios,
+        # and one that samples (evaluate/play --stochastic) explores in all of them
+        actor.distribution.quiet_fraction = 0.0
     return actor
 
 
