@@ -400,7 +400,7 @@ def test_caster_omni_sym_task_is_the_shipped_policys_recipe():
     """`python train.py --task caster_omni_sym` trains with the configs the shipped
     caster_omni_sym was trained with (its env.yaml and train.yaml), apart from what a run
     sets itself (its name, the envs per process, the device) and the task's own name; its
-    per-process physics steps are the run's (run.yaml's, recorded in the folder README)."""
+    default per-process physics steps are run 104's (the folder README's command)."""
     import yaml
 
     from legged_casters.config import to_dict
