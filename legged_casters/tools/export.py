@@ -123,6 +123,9 @@ def build_actor(env, train_cfg, device: str = "cpu") -> nn.Module:
 
 
 def load_actor(env, train_cfg, ckpt: dict, ckpt_path: Path, device: str = "cpu") -> nn.Module:
+    # policy.noise_free_fraction shapes training rollouts; a loaded actor's rows are scenarios,
+    # and one that samples (evaluate/play --stochastic) explores in all of them
+    train_cfg = common.with_overrides(train_cfg, {"policy.noise_free_fraction": 0.0}, "load_actor")
     actor = build_actor(env, train_cfg, device)
     try:
         actor.load_state_dict(ckpt["actor_state_dict"], strict=True)
@@ -133,10 +136,6 @@ def load_actor(env, train_cfg, ckpt: dict, ckpt_path: Path, device: str = "cpu")
             + " ".join(first[:3])[:400]
         ) from None
     actor.eval()
-    if getattr(actor, "distribution", None) is not None and hasattr(actor.distribution, "quiet_fraction"):
-        # policy.noise_free_fraction shapes training rollouts; a loaded actor's rows are scenarios,
-        # and one that samples (evaluate/play --stochastic) explores in all of them
-        actor.distribution.quiet_fraction = 0.0
     return actor
 
 

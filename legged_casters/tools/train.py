@@ -18,6 +18,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import torch
 import yaml
@@ -215,6 +216,16 @@ def per_process_for(
     return {**kept, **given}
 
 
+def configs_for(args: argparse.Namespace, spec, run_dir: Path | None, world: int) -> tuple[Any, Any, dict[str, list]]:
+    """The env and train configs of this invocation (the run's on --resume, else the task's,
+    with --set / --train-set on top) and its per-process lists; what a worker trains with and
+    what the --procs launcher checks once."""
+    env_cfg, train_cfg = common.run_configs(spec, run_dir)
+    env_cfg = common.with_overrides(env_cfg, args.env_set, "--set")
+    train_cfg = common.with_overrides(train_cfg, args.train_set, "--train-set")
+    return env_cfg, train_cfg, per_process_for(args, run_dir, world, train_cfg.env_per_process)
+
+
 def _stop_on_signals() -> None:
     """Ctrl-C, `kill -INT` and `kill` (SIGTERM) all stop training the same way: the
     newest checkpoint is named with the command that continues from it. (A process a
@@ -292,13 +303,7 @@ def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Pa
         run_dir = common.find_run(root, experiment, args.load_run)
         ckpt_path = common.find_checkpoint(run_dir, args.checkpoint)
         ckpt = common.load_checkpoint(ckpt_path, map_location=device)
-        env_cfg, train_cfg = common.run_configs(spec, run_dir)
-    else:
-        env_cfg, train_cfg = common.run_configs(spec, None)
-
-    env_cfg = common.with_overrides(env_cfg, args.env_set, "--set")
-    train_cfg = common.with_overrides(train_cfg, args.train_set, "--train-set")
-    per_process = per_process_for(args, run_dir, world, train_cfg.env_per_process)
+    env_cfg, train_cfg, per_process = configs_for(args, spec, run_dir, world)
     if per_process and rank == 0:
         print(f"[{PROG}] per process: {_flags(per_process)}")
     elif run_dir is None and world == 1 and train_cfg.env_per_process:
@@ -417,10 +422,7 @@ def total_envs(args: argparse.Namespace, spec, default_log_root: Path | None) ->
 def check_process_configs(args: argparse.Namespace, spec, default_log_root: Path | None) -> None:
     """What every worker of --procs will check of its config, checked once in the launcher."""
     run_dir = _resume_dir(args, spec, default_log_root) if args.resume else None
-    env_cfg, train_cfg = common.run_configs(spec, run_dir)
-    env_cfg = common.with_overrides(env_cfg, args.env_set, "--set")
-    train_cfg = common.with_overrides(train_cfg, args.train_set, "--train-set")
-    per_process = per_process_for(args, run_dir, args.procs, train_cfg.env_per_process)
+    env_cfg, _, per_process = configs_for(args, spec, run_dir, args.procs)
     process_env_cfg(env_cfg, per_process, 0, args.procs)
 
 
