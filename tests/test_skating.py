@@ -114,8 +114,19 @@ def test_a_speed_law_sets_the_amplitude_of_the_forward_or_backward_push():
     for bad in ([[0.0, 0.0]], [[1.0, 0.1], [0.5, 0.2]], [[0.0, -0.1], [1.0, 0.1]], [[0.0, 0.0, 1.0], [1.0, 0.1]]):
         with pytest.raises(ValueError, match="amplitude_law"):
             GaitPriorCfg(amplitude_law=bad)
-    with pytest.raises(ValueError, match="needs gait.amplitude_law"):
-        GaitPriorCfg(amplitude_law_backward=LAW_BACK)
+
+
+def test_a_backward_law_alone_leaves_the_forward_push_as_without_a_law():
+    """amplitude_law_backward without amplitude_law (docs/tasks.md run 107): a backward push
+    reads its law, every other push is the prior's own amplitude x ramp, bit for bit."""
+    kw = dict(enabled=True, amplitude=0.2, tilt=0.2, thigh_share=0.0, full_speed=0.25)
+    plain, back = GaitPriorCfg(**kw), GaitPriorCfg(**kw, amplitude_law_backward=LAW_BACK)
+    for cmd in ((0.1, 0, 0), (0.5, 0, 0), (2.0, 0.3, 0), (0.3, 0, 0.8), (0, 0.5, 0), (0, 0, -1.0), (0, 0, 0)):
+        for sin in (1.0, 0.0):
+            assert torch.equal(_prior(cmd, sin_phase=sin, cfg=back), _prior(cmd, sin_phase=sin, cfg=plain)), cmd
+    for vx, amp in ((-0.5, 0.15), (-2.0, 0.3)):
+        wave = _prior((vx, 0, 0), cfg=back) - _prior((vx, 0, 0), sin_phase=0.0, cfg=back)
+        assert wave[:, 0].tolist() == pytest.approx([amp, -amp, amp, -amp]), vx
 
 
 def test_with_a_measured_speed_law_the_prior_alone_follows_the_command():
@@ -202,7 +213,7 @@ def test_clock_phase_advances_with_policy_steps_and_restarts_with_the_episode(en
     assert env.compute_observations()["policy"][1, sl].tolist() == pytest.approx([0.0, 1.0])
 
 
-@pytest.mark.parametrize("variant", ["plain", "uphill", "law", "yaw"])
+@pytest.mark.parametrize("variant", ["plain", "uphill", "law", "back_law", "yaw"])
 def test_the_actor_computes_the_same_prior_from_its_observation(env, variant):
     # The actor reads the (noisy) observation, the env its own state: compare without noise.
     env.cfg.gait.uphill_gain, env.cfg.gait.uphill_deadband = (8.0, 0.0) if variant == "uphill" else (0.0, 0.06)
@@ -210,6 +221,8 @@ def test_the_actor_computes_the_same_prior_from_its_observation(env, variant):
     if variant == "law":
         env.cfg.gait.amplitude_law, env.cfg.gait.amplitude_law_backward = LAW, LAW_BACK
         env.cfg.gait.tilt_backward = 0.25
+    if variant == "back_law":
+        env.cfg.gait.amplitude_law_backward = LAW_BACK
     noise = env.noise_vec.clone()
     env.noise_vec.zero_()
     try:

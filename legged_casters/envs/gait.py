@@ -31,7 +31,8 @@ deployed policy can compute it from what it observes:
   trunk's forward or backward push is read from a measured table of open-loop speed
   against amplitude (scripts/prior_law.py) instead of growing to its full value at
   `full_speed`, so that the prior alone skates at about the commanded speed; the
-  sideways and turning part of each foot's push keeps `amplitude` x ramp.
+  sideways and turning part of each foot's push keeps `amplitude` x ramp. A backward
+  law alone (`amplitude_law_backward`) changes backward pushes only.
 * Uphill effort (`uphill_gain`, off by default): the oscillation amplitude grows with
   the grade the trunk stands on along the commanded direction, read from the
   projected gravity (an IMU quantity the actor observes), because the push a caster
@@ -102,7 +103,8 @@ class GaitPriorCfg:
     `amplitude` x ramp of its push without the trunk's vx (the sideways and turning part).
     Empty (the default): `amplitude` x ramp of the whole push, as before."""
     amplitude_law_backward: list[list[float]] = field(default_factory=list)
-    """The same for a backward push (vx < 0); empty: amplitude_law."""
+    """The same for a backward push (vx < 0); empty: amplitude_law. Given without
+    amplitude_law, a forward push keeps the prior's own `amplitude` x ramp (as with no law)."""
     tilt_backward: float | None = field(default=None, metadata={"min": 0.0})
     """Tilt for a foot whose push points backwards; None: `tilt`."""
 
@@ -121,11 +123,10 @@ class GaitPriorCfg:
                 raise ValueError(f"gait.{name}: speeds must be >= 0 and ascending, got {speeds}")
             if any(p[1] < 0 for p in law):
                 raise ValueError(f"gait.{name}: amplitudes must be >= 0, got {law}")
-        if self.amplitude_law_backward and not self.amplitude_law:
-            raise ValueError("gait.amplitude_law_backward needs gait.amplitude_law")
 
     def law_tensors(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """(forward, backward) amplitude laws as (k, 2) tensors; (0, 2) without a law."""
+        """(forward, backward) amplitude laws as (k, 2) tensors; (0, 2) where that direction
+        has no law (the backward one falls back to the forward one)."""
         fwd = torch.tensor(self.amplitude_law, dtype=torch.float32).reshape(-1, 2)
         back = torch.tensor(self.amplitude_law_backward or self.amplitude_law, dtype=torch.float32).reshape(-1, 2)
         return fwd, back
@@ -205,15 +206,19 @@ def _prior(
             max=max(max_amplitude, amplitude)
         )
         uphill = raised - amp
-    if law_fwd.shape[0] > 0:
-        # the trunk's forward/backward push from the measured law, the rest of each foot's push
-        # (sideways, turning) as without it; the uphill term adds to both
+    foot_amp = (amp + uphill).unsqueeze(1) * ramp
+    if law_fwd.shape[0] > 0 or law_back.shape[0] > 0:
+        # the trunk's forward/backward push from the measured law of its direction, the rest of
+        # each foot's push (sideways, turning) as without it; a direction without a law keeps
+        # the ramp above; the uphill term adds to both
         px = push[:, 0:1].expand_as(vx)
-        law_amp = torch.where(px >= 0.0, _law(px.abs(), law_fwd), _law(px.abs(), law_back))
         rest_amp = amp.unsqueeze(1) * (torch.sqrt((vx - px) ** 2 + vy * vy + 1e-12) / full_speed).clamp(max=1.0)
-        foot_amp = torch.maximum(law_amp, rest_amp) + uphill.unsqueeze(1)
-    else:
-        foot_amp = (amp + uphill).unsqueeze(1) * ramp
+        if law_fwd.shape[0] > 0:
+            forward = torch.maximum(_law(px.abs(), law_fwd), rest_amp) + uphill.unsqueeze(1)
+            foot_amp = torch.where(px >= 0.0, forward, foot_amp)
+        if law_back.shape[0] > 0:
+            backward = torch.maximum(_law(px.abs(), law_back), rest_amp) + uphill.unsqueeze(1)
+            foot_amp = torch.where(px < 0.0, backward, foot_amp)
     wave = sin_phase.unsqueeze(1) * foot_amp * (1.0 - mask)
     hip = -tilt_y + side * wave * ux.abs()
     thigh = thigh_share * tilt_x - front * wave * uy.abs()
