@@ -213,12 +213,10 @@ def _prior(
         # the ramp above; the uphill term adds to both
         px = push[:, 0:1].expand_as(vx)
         rest_amp = amp.unsqueeze(1) * (torch.sqrt((vx - px) ** 2 + vy * vy + 1e-12) / full_speed).clamp(max=1.0)
-        if law_fwd.shape[0] > 0:
-            forward = torch.maximum(_law(px.abs(), law_fwd), rest_amp) + uphill.unsqueeze(1)
-            foot_amp = torch.where(px >= 0.0, forward, foot_amp)
-        if law_back.shape[0] > 0:
-            backward = torch.maximum(_law(px.abs(), law_back), rest_amp) + uphill.unsqueeze(1)
-            foot_amp = torch.where(px < 0.0, backward, foot_amp)
+        for law, along in ((law_fwd, px >= 0.0), (law_back, px < 0.0)):
+            if law.shape[0] > 0:
+                law_amp = torch.maximum(_law(px.abs(), law), rest_amp) + uphill.unsqueeze(1)
+                foot_amp = torch.where(along, law_amp, foot_amp)
     wave = sin_phase.unsqueeze(1) * foot_amp * (1.0 - mask)
     hip = -tilt_y + side * wave * ux.abs()
     thigh = thigh_share * tilt_x - front * wave * uy.abs()
