@@ -129,6 +129,35 @@ def test_a_backward_law_alone_leaves_the_forward_push_as_without_a_law():
         assert wave[:, 0].tolist() == pytest.approx([amp, -amp, amp, -amp]), vx
 
 
+def test_an_added_law_equal_to_the_ramp_changes_nothing_and_a_larger_one_adds_its_excess():
+    """amplitude_law_adds (docs/tasks.md row 111): a foot keeps the prior's own amplitude x ramp
+    of its whole push and the law adds what it gives beyond amplitude x ramp of the trunk's
+    vx alone. A law equal to that ramp is then the prior without a law for every command and
+    speed error (the larger-of rule is not: a sideways or turning push with some vx loses
+    splay), and a larger one raises the splay by its excess."""
+    kw = dict(enabled=True, amplitude=0.2, tilt=0.2, thigh_share=0.0, full_speed=0.25, speed_feedback=1.0,
+              command_share=0.3)  # fmt: skip
+    ramp = [[0.0, 0.0], [0.25, 0.2]]
+    plain = GaitPriorCfg(**kw)
+    larger_of = GaitPriorCfg(**kw, amplitude_law_backward=ramp, amplitude_law=ramp)
+    added = dataclasses.replace(larger_of, amplitude_law_adds=True)
+    g = torch.Generator().manual_seed(0)
+    cmd = torch.rand(64, 3, generator=g) * 4.0 - 2.0
+    vel = torch.rand(64, 2, generator=g) * 4.0 - 2.0
+    for sin in (torch.ones(64), torch.zeros(64), torch.rand(64, generator=g) * 2 - 1):
+        args = cmd, torch.zeros(64, 4), sin
+        assert torch.allclose(gait_prior(added, *args, velocity=vel), gait_prior(plain, *args, velocity=vel), atol=1e-6)
+    args = cmd, torch.zeros(64, 4), torch.ones(64)
+    assert not torch.allclose(gait_prior(larger_of, *args, velocity=vel), gait_prior(plain, *args, velocity=vel))
+    big = GaitPriorCfg(
+        **{**kw, "speed_feedback": 0.0},
+        amplitude_law_adds=True,
+        amplitude_law_backward=[[0.0, 0.0], [0.25, 0.2], [1.0, 0.35]],
+    )
+    wave = _prior((-1.0, 0, 0), cfg=big) - _prior((-1.0, 0, 0), sin_phase=0.0, cfg=big)
+    assert wave[:, 0].tolist() == pytest.approx([0.35, -0.35, 0.35, -0.35])  # 0.2 of its own + 0.15 of excess
+
+
 def test_with_a_measured_speed_law_the_prior_alone_follows_the_command():
     """scripts/prior_law.py's law (docs/tasks.md): open loop, no policy, the prior skates
     faster for a faster command (the prior without it pushes alike for every command)."""
@@ -213,7 +242,7 @@ def test_clock_phase_advances_with_policy_steps_and_restarts_with_the_episode(en
     assert env.compute_observations()["policy"][1, sl].tolist() == pytest.approx([0.0, 1.0])
 
 
-@pytest.mark.parametrize("variant", ["plain", "uphill", "law", "back_law", "yaw"])
+@pytest.mark.parametrize("variant", ["plain", "uphill", "law", "back_law", "back_law_adds", "yaw"])
 def test_the_actor_computes_the_same_prior_from_its_observation(env, variant):
     # The actor reads the (noisy) observation, the env its own state: compare without noise.
     env.cfg.gait.uphill_gain, env.cfg.gait.uphill_deadband = (8.0, 0.0) if variant == "uphill" else (0.0, 0.06)
@@ -221,8 +250,9 @@ def test_the_actor_computes_the_same_prior_from_its_observation(env, variant):
     if variant == "law":
         env.cfg.gait.amplitude_law, env.cfg.gait.amplitude_law_backward = LAW, LAW_BACK
         env.cfg.gait.tilt_backward = 0.25
-    if variant == "back_law":
+    if variant.startswith("back_law"):
         env.cfg.gait.amplitude_law_backward = LAW_BACK
+        env.cfg.gait.amplitude_law_adds = variant.endswith("adds")
     noise = env.noise_vec.clone()
     env.noise_vec.zero_()
     try:
@@ -240,6 +270,7 @@ def test_the_actor_computes_the_same_prior_from_its_observation(env, variant):
     finally:
         env.cfg.gait.uphill_gain, env.cfg.gait.uphill_deadband = 0.0, 0.06
         env.cfg.gait.amplitude_law, env.cfg.gait.amplitude_law_backward, env.cfg.gait.tilt_backward = [], [], None
+        env.cfg.gait.amplitude_law_adds = False
         env.cfg.gait.yaw_feedback, env.cfg.gait.yaw_command_share = 0.0, 1.0
         env.noise_vec.copy_(noise)
 

@@ -32,7 +32,9 @@ deployed policy can compute it from what it observes:
   against amplitude (scripts/prior_law.py) instead of growing to its full value at
   `full_speed`, so that the prior alone skates at about the commanded speed; the
   sideways and turning part of each foot's push keeps `amplitude` x ramp. A backward
-  law alone (`amplitude_law_backward`) changes backward pushes only.
+  law alone (`amplitude_law_backward`) changes backward pushes only. A foot takes the
+  larger of the law's amplitude and its sideways/turning part's, or with
+  `amplitude_law_adds` keeps the prior's own amplitude and gets the law's excess on top.
 * Uphill effort (`uphill_gain`, off by default): the oscillation amplitude grows with
   the grade the trunk stands on along the commanded direction, read from the
   projected gravity (an IMU quantity the actor observes), because the push a caster
@@ -105,6 +107,13 @@ class GaitPriorCfg:
     amplitude_law_backward: list[list[float]] = field(default_factory=list)
     """The same for a backward push (vx < 0); empty: amplitude_law. Given without
     amplitude_law, a forward push keeps the prior's own `amplitude` x ramp (as with no law)."""
+    amplitude_law_adds: bool = False
+    """How a law meets the rest of a foot's push. False: a foot takes the larger of the law's
+    amplitude and `amplitude` x ramp of its push without the trunk's vx. True: it keeps the
+    prior's own `amplitude` x ramp of its whole push and the law adds what it gives beyond
+    `amplitude` x ramp of the trunk's vx alone, so a law no larger than the ramp changes
+    nothing (docs/tasks.md row 111: on the shipped policy the larger-of rule alone, with a law
+    equal to the ramp, changed vy +0.4 and added falls)."""
     tilt_backward: float | None = field(default=None, metadata={"min": 0.0})
     """Tilt for a foot whose push points backwards; None: `tilt`."""
 
@@ -172,6 +181,7 @@ def _prior(
     command_share: float,
     law_fwd: torch.Tensor,
     law_back: torch.Tensor,
+    law_adds: bool,
     tilt_backward: float,
     yaw_rate: torch.Tensor,
     yaw_feedback: float,
@@ -212,10 +222,17 @@ def _prior(
         # each foot's push (sideways, turning) as without it; a direction without a law keeps
         # the ramp above; the uphill term adds to both
         px = push[:, 0:1].expand_as(vx)
-        rest_amp = amp.unsqueeze(1) * (torch.sqrt((vx - px) ** 2 + vy * vy + 1e-12) / full_speed).clamp(max=1.0)
+        own = foot_amp  # the prior's own amplitude, before any law
+        if law_adds:  # the ramp of the trunk's vx alone: what a law adds to is beyond it
+            rest_amp = amp.unsqueeze(1) * (px.abs() / full_speed).clamp(max=1.0)
+        else:  # the ramp of the rest of the push: a law's amplitude is at least that
+            rest_amp = amp.unsqueeze(1) * (torch.sqrt((vx - px) ** 2 + vy * vy + 1e-12) / full_speed).clamp(max=1.0)
         for law, along in ((law_fwd, px >= 0.0), (law_back, px < 0.0)):
             if law.shape[0] > 0:
-                law_amp = torch.maximum(_law(px.abs(), law), rest_amp) + uphill.unsqueeze(1)
+                if law_adds:
+                    law_amp = own + (_law(px.abs(), law) - rest_amp).clamp(min=0.0)
+                else:
+                    law_amp = torch.maximum(_law(px.abs(), law), rest_amp) + uphill.unsqueeze(1)
                 foot_amp = torch.where(along, law_amp, foot_amp)
     wave = sin_phase.unsqueeze(1) * foot_amp * (1.0 - mask)
     hip = -tilt_y + side * wave * ux.abs()
@@ -260,7 +277,7 @@ def gait_prior(
         cfg.tilt, cfg.amplitude, cfg.thigh_share, cfg.full_speed, cfg.lateral_gain,
         gravity, cfg.uphill_gain, cfg.uphill_deadband, cfg.max_amplitude,
         velocity, cfg.speed_feedback, cfg.command_share,
-        law_fwd.to(dev), law_back.to(dev), cfg.backward_tilt(),
+        law_fwd.to(dev), law_back.to(dev), bool(cfg.amplitude_law_adds), cfg.backward_tilt(),
         yaw_rate, cfg.yaw_feedback, cfg.yaw_command_share,
     )  # fmt: skip
 
@@ -281,6 +298,7 @@ class GaitPrior(torch.nn.Module):
         self.uphill_deadband = float(c.uphill_deadband)
         self.speed_feedback, self.command_share = float(c.speed_feedback), float(c.command_share)
         self.tilt_backward = c.backward_tilt()
+        self.law_adds = bool(c.amplitude_law_adds)
         law_fwd, law_back = c.law_tensors()
         self.register_buffer("law_fwd", law_fwd, persistent=False)
         self.register_buffer("law_back", law_back, persistent=False)
@@ -313,7 +331,7 @@ class GaitPrior(torch.nn.Module):
             self.tilt, self.amplitude, self.thigh_share, self.full_speed, self.lateral_gain,
             gravity, self.uphill_gain, self.uphill_deadband, self.max_amplitude,
             velocity, self.speed_feedback, self.command_share,
-            self.law_fwd, self.law_back, self.tilt_backward,
+            self.law_fwd, self.law_back, self.law_adds, self.tilt_backward,
             yaw_rate, self.yaw_feedback, self.yaw_command_share,
         )  # fmt: skip
         return offsets / self.action_scale
