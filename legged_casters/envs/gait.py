@@ -223,15 +223,13 @@ def _prior(
         # the ramp above; the uphill term adds to both
         px = push[:, 0:1].expand_as(vx)
         own = foot_amp  # the prior's own amplitude, before any law
-        if law_adds:  # the ramp of the trunk's vx alone: what a law adds to is beyond it
-            rest_amp = amp.unsqueeze(1) * (px.abs() / full_speed).clamp(max=1.0)
-        else:  # the ramp of the rest of the push: a law's amplitude is at least that
-            rest_amp = amp.unsqueeze(1) * (torch.sqrt((vx - px) ** 2 + vy * vy + 1e-12) / full_speed).clamp(max=1.0)
+        vx_amp = amp.unsqueeze(1) * (px.abs() / full_speed).clamp(max=1.0)  # the ramp of the trunk's vx
+        rest_amp = amp.unsqueeze(1) * (torch.sqrt((vx - px) ** 2 + vy * vy + 1e-12) / full_speed).clamp(max=1.0)
         for law, along in ((law_fwd, px >= 0.0), (law_back, px < 0.0)):
             if law.shape[0] > 0:
-                if law_adds:
-                    law_amp = own + (_law(px.abs(), law) - rest_amp).clamp(min=0.0)
-                else:
+                if law_adds:  # the law's excess over the ramp of the trunk's vx, on top of the prior's own
+                    law_amp = own + (_law(px.abs(), law) - vx_amp).clamp(min=0.0)
+                else:  # the larger of the law and the ramp of the rest of the push
                     law_amp = torch.maximum(_law(px.abs(), law), rest_amp) + uphill.unsqueeze(1)
                 foot_amp = torch.where(along, law_amp, foot_amp)
     wave = sin_phase.unsqueeze(1) * foot_amp * (1.0 - mask)
