@@ -149,10 +149,8 @@ def test_an_added_law_equal_to_the_ramp_changes_nothing_and_a_larger_one_adds_it
         assert torch.allclose(gait_prior(added, *args, velocity=vel), gait_prior(plain, *args, velocity=vel), atol=1e-6)
     args = cmd, torch.zeros(64, 4), torch.ones(64)
     assert not torch.allclose(gait_prior(larger_of, *args, velocity=vel), gait_prior(plain, *args, velocity=vel))
-    big = GaitPriorCfg(
-        **{**kw, "speed_feedback": 0.0},
-        amplitude_law_adds=True,
-        amplitude_law_backward=[[0.0, 0.0], [0.25, 0.2], [1.0, 0.35]],
+    big = dataclasses.replace(
+        added, speed_feedback=0.0, amplitude_law=[], amplitude_law_backward=[[0.0, 0.0], [0.25, 0.2], [1.0, 0.35]]
     )
     wave = _prior((-1.0, 0, 0), cfg=big) - _prior((-1.0, 0, 0), sin_phase=0.0, cfg=big)
     assert wave[:, 0].tolist() == pytest.approx([0.35, -0.35, 0.35, -0.35])  # 0.2 of its own + 0.15 of excess

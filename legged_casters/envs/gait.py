@@ -222,13 +222,13 @@ def _prior(
         # each foot's push (sideways, turning) as without it; a direction without a law keeps
         # the ramp above; the uphill term adds to both
         px = push[:, 0:1].expand_as(vx)
-        own = foot_amp  # the prior's own amplitude, before any law
         vx_amp = amp.unsqueeze(1) * (px.abs() / full_speed).clamp(max=1.0)  # the ramp of the trunk's vx
         rest_amp = amp.unsqueeze(1) * (torch.sqrt((vx - px) ** 2 + vy * vy + 1e-12) / full_speed).clamp(max=1.0)
         for law, along in ((law_fwd, px >= 0.0), (law_back, px < 0.0)):
             if law.shape[0] > 0:
                 if law_adds:  # the law's excess over the ramp of the trunk's vx, on top of the prior's own
-                    law_amp = own + (_law(px.abs(), law) - vx_amp).clamp(min=0.0)
+                    # (foot_amp still holds the prior's own where `along`: the directions are disjoint)
+                    law_amp = foot_amp + (_law(px.abs(), law) - vx_amp).clamp(min=0.0)
                 else:  # the larger of the law and the ramp of the rest of the push
                     law_amp = torch.maximum(_law(px.abs(), law), rest_amp) + uphill.unsqueeze(1)
                 foot_amp = torch.where(along, law_amp, foot_amp)
