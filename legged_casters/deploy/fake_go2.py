@@ -109,7 +109,8 @@ def main(argv: list[str] | None = None) -> int:
         choices=("hold", "damping"),
         default="hold",
         help="before the first LowCmd: hold the stand pose (default), or damp (the robot sinks to the "
-        "floor; the bridge's stand-up does not lift a caster robot from there, docs/deploy.md)",
+        "floor; the bridge's default stand-up, --standup fold, gets it up from there: docs/deploy.md "
+        "'Starting from the floor')",
     )
     p.add_argument("--duration", type=float, default=0.0, help="seconds (0: until Ctrl-C)")
     p.add_argument("--summary-every", type=float, default=10.0, help="seconds between status lines (0: none)")
