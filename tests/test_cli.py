@@ -585,6 +585,20 @@ def test_play_of_a_runs_export_writes_next_to_the_run_not_into_the_export(run, t
     assert (copy / "play" / "policy_steps_data.npz").is_file()
 
 
+def test_each_shipped_policy_played_gets_its_own_output_folder(tmp_path):
+    """caster_omni and caster_omni_sym both name caster_omni as their task: playing one must
+    not overwrite the other's plots, and nothing is written into resources/."""
+    outs = []
+    for name in ("caster_omni", "caster_omni_sym"):
+        folder = common.SHIPPED_POLICIES / name
+        args = play.build_parser().parse_args(["--policy", str(folder), "--log_root", str(tmp_path)])
+        with contextlib.redirect_stdout(io.StringIO()):
+            source = play._resolve_source(args, None)
+        assert source.task == "caster_omni"
+        outs.append(source.out_dir)
+    assert outs == [tmp_path / "caster_omni" / "play_caster_omni", tmp_path / "caster_omni" / "play_caster_omni_sym"]
+
+
 def test_kill_stops_training_like_ctrl_c(tmp_path):
     """SIGTERM (and SIGINT to a process started in the background, which would otherwise
     ignore it) ends training with the newest checkpoint and the command that continues."""

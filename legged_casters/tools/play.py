@@ -130,14 +130,11 @@ def _resolve_source(args: argparse.Namespace, default_log_root: Path | None) -> 
         return _resolve_source(args, default_log_root)
     exp = common.read_export(path, args.task)
     task, spec, env_cfg, train_cfg = exp.task, exp.spec, exp.env_cfg, exp.train_cfg
-    shipped = path.resolve().parent.parent == common.SHIPPED_POLICIES
     if args.out:
         out = Path(args.out)
-    elif shipped:  # never write into resources/
-        out = root / spec.train_cfg.experiment_name / "play_shipped"
     elif (path.parent.parent / common.RUN_FILE).is_file():  # <run>/exported/: next to the run's own plays
         out = path.parent.parent / "play"
-    else:  # never into the export folder (the thing one copies to a robot)
+    else:  # never into the export folder (the thing one copies to a robot, or resources/): one per folder
         out = root / spec.train_cfg.experiment_name / f"play_{path.parent.name}"
     kind = "torchscript" if path.suffix == ".pt" else "onnx"
     return PolicySource(kind, task, spec, env_cfg, train_cfg, out, path.stem, path=path, obs_dim=exp.obs_dim)
