@@ -161,16 +161,12 @@ def main(argv: list[str] | None = None) -> int:
             flush=True,
         )
 
-    try:
-        transport.arm_signals()
-        watch.run(args.duration, args.summary_every, summary)
-    except KeyboardInterrupt:
-        pass
-    finally:
+    def close() -> None:
         r.stop()
         if session is not None:
             session.close()
-        watch.report()
+
+    watch.serve(args.duration, args.summary_every, summary, close)
     print(
         f"fake_go2: {r.steps} steps ({r.steps * r.dt:.1f} s), LowState {r.lowstates}, LowCmd {r.commands_received}, "
         f"bad CRC {r.bad_crc}, mode {r.mode.name}, trunk at ({r.data.qpos[0]:.3f}, {r.data.qpos[1]:.3f}, "

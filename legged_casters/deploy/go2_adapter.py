@@ -46,7 +46,7 @@ from legged_casters.robot import build
 LOOPBACK = ("lo", "lo0")
 
 
-class Go2Adapter:
+class Go2Adapter(robot_side.TakesCommands):
     """Both directions and the watchdog; `publish_state(bytes)` sends a RobotState,
     `write_lowcmd(LowCmd)` writes to the robot (None: dry run)."""
 
@@ -104,17 +104,6 @@ class Go2Adapter:
         self.publish_state(msg.encode())
 
     # --- bridge -> robot --------------------------------------------------------------
-    def on_command(self, payload: bytes) -> None:
-        self.inbox.on_payload(payload)
-
-    @property
-    def rejected(self) -> dict[str, int]:
-        return self.inbox.rejected
-
-    @property
-    def commands_received(self) -> int:
-        return self.inbox.received
-
     def targets(self, now: float) -> tuple[P.CommandMode, str, tuple[np.ndarray, ...] | None]:
         """(mode, reason, (q, dq, kp, kd)) to write now; None: write nothing."""
         cmd, arrival = self.inbox.latest()
@@ -255,17 +244,13 @@ def main(argv: list[str] | None = None) -> int:
             line += f"; would send q {np.round(q, 2).tolist()} kp {kp.max():.0f} kd {kd.max():.1f}"
         print(line, flush=True)
 
-    try:
-        transport.arm_signals()
-        watch.run(args.duration, args.summary_every, summary, tick)
-    except KeyboardInterrupt:
-        pass
-    finally:
+    def close() -> None:
         a.stop()
         cmd_sub.undeclare()
         low_sub.Close()
         session.close()
-        watch.report()
+
+    watch.serve(args.duration, args.summary_every, summary, close, tick)
     print(
         f"go2_adapter: LowState {a.lowstates} (bad {a.bad_lowstates}), commands {a.commands_received}, "
         f"LowCmd {a.lowcmds_written}{' (dry run)' if args.dry_run else ''}, rejected {a.rejected}, "

@@ -59,6 +59,24 @@ class CommandInbox:
             return self._cmd, self._arrival
 
 
+class TakesCommands:
+    """The bridge-facing side of a robot side that keeps its commands in `self.inbox` (a
+    CommandInbox): the transport's callback and the counts the status lines print."""
+
+    inbox: CommandInbox
+
+    def on_command(self, payload: bytes) -> None:
+        self.inbox.on_payload(payload)
+
+    @property
+    def rejected(self) -> dict[str, int]:
+        return self.inbox.rejected
+
+    @property
+    def commands_received(self) -> int:
+        return self.inbox.received
+
+
 WATCHDOG_WHY = "no command for the watchdog time"
 
 
@@ -134,6 +152,21 @@ class Watch:
                     last = now
         except KeyboardInterrupt:
             pass
+
+    def serve(self, duration: float, summary_every: float, summary: Callable[[float], None],
+              close: Callable[[], None], tick: Callable[[float], None] | None = None) -> None:  # fmt: skip
+        """A robot side's main loop: `run` with the stop signals armed (a signal that came
+        before ends it at once), then, however it ends, close() and the last changes."""
+        from legged_casters.deploy import transport
+
+        try:
+            transport.arm_signals()
+            self.run(duration, summary_every, summary, tick)
+        except KeyboardInterrupt:
+            pass
+        finally:
+            close()
+            self.report()
 
 
 class Rates:

@@ -47,7 +47,7 @@ from legged_casters.deploy import robot_side, transport
 from legged_casters.robot import build, go2
 
 
-class SimRobot:
+class SimRobot(robot_side.TakesCommands):
     def __init__(
         self,
         publish,
@@ -111,18 +111,6 @@ class SimRobot:
         self.overruns = 0
         self._running = False
         self._thread: threading.Thread | None = None
-
-    # --- input -----------------------------------------------------------------------
-    def on_command(self, payload: bytes) -> None:
-        self.inbox.on_payload(payload)
-
-    @property
-    def rejected(self) -> dict[str, int]:
-        return self.inbox.rejected
-
-    @property
-    def commands_received(self) -> int:
-        return self.inbox.received
 
     # --- physics ---------------------------------------------------------------------
     def _gains(self, now: float) -> tuple:
@@ -246,15 +234,11 @@ def main(argv: list[str] | None = None) -> int:
             flush=True,
         )
 
-    try:
-        transport.arm_signals()
-        watch.run(args.duration, args.summary_every, summary)
-    except KeyboardInterrupt:
-        pass
-    finally:
+    def close() -> None:
         zr.stop()
         session.close()
-        watch.report()
+
+    watch.serve(args.duration, args.summary_every, summary, close)
     print(
         f"sim_robot: {r.steps} steps ({r.steps * r.dt:.1f} s), commands {r.commands_received}, "
         f"rejected {r.rejected}, overruns {r.overruns}, mode {r.mode.name}, "
