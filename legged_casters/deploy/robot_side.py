@@ -11,6 +11,7 @@ from collections.abc import Callable
 import numpy as np
 
 from legged_casters.deploy import protocol as P
+from legged_casters.deploy import transport
 
 
 class CommandInbox:
@@ -157,8 +158,6 @@ class Watch:
               close: Callable[[], None], tick: Callable[[float], None] | None = None) -> None:  # fmt: skip
         """A robot side's main loop: `run` with the stop signals armed (a signal that came
         before ends it at once), then, however it ends, close() and the last changes."""
-        from legged_casters.deploy import transport
-
         try:
             transport.arm_signals()
             self.run(duration, summary_every, summary, tick)
