@@ -133,15 +133,18 @@ class Watch:
             print(f"{self.prog}: {changes[k - 1][1].name} -> {changes[k][1].name}{why}", flush=True)
         self.seen = max(self.seen, len(changes))
 
-    def run(self, duration: float, summary_every: float, summary: Callable[[float], None],
-            tick: Callable[[float], None] | None = None) -> None:  # fmt: skip
-        """Until `duration` s have passed (0: until Ctrl-C, which returns normally): every
-        0.2 s report the changes and call tick(seconds since start); every `summary_every`
-        s (0: never) call summary(seconds since the last summary)."""
+    def serve(self, duration: float, summary_every: float, summary: Callable[[float], None],
+              close: Callable[[], None], tick: Callable[[float], None] | None = None) -> None:  # fmt: skip
+        """A robot side's main loop, with the stop signals armed (a signal that came before
+        ends it at once): until `duration` s have passed (0: until Ctrl-C or SIGTERM, which
+        return normally), every 0.2 s report the changes and call tick(seconds since start);
+        every `summary_every` s (0: never) call summary(seconds since the last summary).
+        However it ends, close() and then the last changes."""
         t0 = time.monotonic()
         t_end = t0 + duration if duration > 0 else float("inf")
         last = t0
         try:
+            transport.arm_signals()
             while time.monotonic() < t_end:
                 time.sleep(min(0.2, max(0.0, t_end - time.monotonic())))
                 self.report()
@@ -151,16 +154,6 @@ class Watch:
                 if summary_every > 0 and now - last >= summary_every:
                     summary(now - last)
                     last = now
-        except KeyboardInterrupt:
-            pass
-
-    def serve(self, duration: float, summary_every: float, summary: Callable[[float], None],
-              close: Callable[[], None], tick: Callable[[float], None] | None = None) -> None:  # fmt: skip
-        """A robot side's main loop: `run` with the stop signals armed (a signal that came
-        before ends it at once), then, however it ends, close() and the last changes."""
-        try:
-            transport.arm_signals()
-            self.run(duration, summary_every, summary, tick)
         except KeyboardInterrupt:
             pass
         finally:
