@@ -89,6 +89,31 @@ def test_adapter_refuses_a_real_interface_without_the_flag():
 
 
 @needs_sdk
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_fake_go2_without_zenoh_stops_cleanly_on_a_signal(sig):
+    """fake_go2 with no --listen or --connect opens no zenoh session (which installs the stop
+    handlers in the other tools): SIGINT and SIGTERM must still run its shutdown (the final
+    summary line) and exit 0, also when a shell started it with SIGINT ignored."""
+    cmd = [sys.executable, "-m", "legged_casters.deploy.fake_go2", "--summary-every", "0", "--duration", "0"]
+    shell = "trap '' INT; exec " + " ".join(cmd)
+    proc = subprocess.Popen(["sh", "-c", shell], cwd=REPO, stdout=subprocess.PIPE, text=True)
+    try:
+        t0 = time.monotonic()
+        line = proc.stdout.readline()
+        while "physics" not in line and time.monotonic() - t0 < 60:
+            line = proc.stdout.readline()
+        assert "physics" in line, "fake_go2 did not start"
+        time.sleep(0.5)
+        proc.send_signal(sig)
+        out, _ = proc.communicate(timeout=15)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0
+    assert "fake_go2:" in out and "steps (" in out  # the final summary: the shutdown ran
+
+
+@needs_sdk
 def test_crc_matches_the_sdk_reference(monkeypatch):
     """Against the SDK's own packing and its pure-Python CRC (its Crc() wants a shared
     library the wheel lacks, which a stand-in replaces while the object is built)."""

@@ -128,6 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     except unitree.SdkUnavailable as err:
         print(f"fake_go2: error: {err}", file=sys.stderr)
         return 2
+    transport.stop_on_signals()  # also without a zenoh session (whose opening would install them)
     session, truth_pub = None, None
     if args.listen or args.connect:
         try:

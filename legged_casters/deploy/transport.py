@@ -269,7 +269,10 @@ def stop_on_signals() -> None:
 
 def arm_signals() -> None:
     """Called first thing inside the `try` whose `finally` cleans up: from here a stop
-    signal raises KeyboardInterrupt at once, and one that came before is raised now."""
+    signal raises KeyboardInterrupt at once, and one that came before is raised now. It
+    installs the handlers as well (`stop_on_signals`), so that a tool that opened no
+    session (fake_go2 without --listen or --connect) stops cleanly too."""
+    stop_on_signals()
     _signals["armed"] = True
     if _signals["pending"]:
         _signals["pending"] = False
