@@ -420,6 +420,24 @@ def test_play_flags_are_checked_before_the_simulation(no_simulation, tmp_path, c
     assert "known: four_wheel, front_wheel, rear_wheel" in capsys.readouterr().err
     assert play.main([*caster, "--profile", "modes", "--mode", "rear_wheel"]) == common.EXIT_USAGE
     assert "leave --mode out" in capsys.readouterr().err
+    # the steps profile runs its own commands: a --cmd given beside it would be ignored
+    assert play.main([*caster, "--profile", "steps", "--cmd", "-1", "0", "0"]) == common.EXIT_USAGE
+    assert "does not read --cmd" in capsys.readouterr().err
+
+
+def test_play_cmd_alone_holds_that_command_and_no_flags_run_the_steps():
+    """--cmd without --profile selects the constant profile (it used to be ignored under the
+    default steps profile); with neither, the steps profile and the default command."""
+    parser = play.build_parser()
+    for argv, profile, cmd in (
+        (["--cmd", "-1", "0", "0"], "constant", (-1.0, 0.0, 0.0)),
+        ([], "steps", play.DEFAULT_CMD),
+        (["--profile", "slalom"], "slalom", play.DEFAULT_CMD),
+        (["--profile", "constant"], "constant", play.DEFAULT_CMD),
+    ):
+        args = parser.parse_args(argv)
+        play.resolve_profile(args)
+        assert (args.profile, tuple(args.cmd)) == (profile, cmd), argv
 
 
 def test_default_task_prefers_caster_omni():

@@ -35,6 +35,8 @@ from legged_casters.tools.common import CheckpointError, UsageError
 PROG = "play.py"
 PROFILES = ("constant", "steps", "slalom", "modes")
 DEFAULT_DURATION = {"constant": 8.0, "steps": 10.0, "slalom": 12.0, "modes": 12.0}
+DEFAULT_CMD = (0.5, 0.0, 0.0)
+"""The --cmd of the constant, slalom and modes profiles when none is given (vx, vy, wz)."""
 MODE_SEQUENCE = (("4WD", (0, 0, 0, 0)), ("FWD", (0, 0, 1, 1)), ("RWD", (1, 1, 0, 0)))
 """4WD -> FWD -> RWD: mode masks (FL, FR, RL, RR), 1 = that caster is not driven."""
 DEFAULT_MODE = "four_wheel"
@@ -293,15 +295,17 @@ def build_parser() -> argparse.ArgumentParser:
         help="checkpoint (default: from --load_run/--checkpoint), zero, random, or an exported policy.pt/.onnx",
     )
     p.add_argument("--num_envs", type=int, default=2, help="robots (drawn side by side; plots show robot 0)")
-    p.add_argument("--profile", choices=PROFILES, default="steps", help="scripted commands")
+    p.add_argument(
+        "--profile", choices=PROFILES, help="scripted commands (default: constant with --cmd, steps without)"
+    )
     p.add_argument("--duration", type=float, help="seconds (default: constant 8, steps 10, slalom 12, modes 12)")
     p.add_argument(
         "--cmd",
         type=float,
         nargs=3,
-        default=(0.5, 0.0, 0.0),
         metavar=("VX", "VY", "WZ"),
-        help="command of the constant profile (vx also for slalom and modes)",
+        help=f"command of the constant profile (vx also for slalom and modes; default {DEFAULT_CMD}); "
+        "alone it selects --profile constant",
     )
     p.add_argument(
         "--mode",
@@ -325,8 +329,23 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def resolve_profile(args: argparse.Namespace) -> None:
+    """Fill in --profile and --cmd: --cmd alone selects the constant profile, neither the
+    steps profile; the steps profile with a --cmd (which it would ignore) is refused."""
+    if args.profile is None:
+        args.profile = "steps" if args.cmd is None else "constant"
+    if args.profile == "steps" and args.cmd is not None:
+        raise UsageError(
+            "--profile steps runs its own commands (stand, vx -0.6, vx +0.6 m/s) and does not read --cmd; "
+            "use --profile constant (or leave --profile out) to hold --cmd"
+        )
+    if args.cmd is None:
+        args.cmd = DEFAULT_CMD
+
+
 def play(args: argparse.Namespace, default_log_root: Path | None) -> int:
     # --- checks before the simulation starts ------------------------------------------------------
+    resolve_profile(args)
     if args.num_envs < 1:
         raise UsageError(f"--num_envs must be at least 1, got {args.num_envs}")
     if args.duration is not None and not args.duration > 0:
