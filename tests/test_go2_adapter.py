@@ -15,6 +15,7 @@ import time
 import numpy as np
 import pytest
 from test_deploy import REPO, LoopProbe, _spawn, _stop, free_port, realtime, wait_for  # noqa: F401 (fixture)
+from test_soak import signal_when_ready
 
 from legged_casters.deploy import protocol as P
 from legged_casters.deploy import unitree
@@ -95,21 +96,8 @@ def test_fake_go2_without_zenoh_stops_cleanly_on_a_signal(sig):
     handlers in the other tools): SIGINT and SIGTERM must still run its shutdown (the final
     summary line) and exit 0, also when a shell started it with SIGINT ignored."""
     cmd = [sys.executable, "-m", "legged_casters.deploy.fake_go2", "--summary-every", "0", "--duration", "0"]
-    shell = "trap '' INT; exec " + " ".join(cmd)
-    proc = subprocess.Popen(["sh", "-c", shell], cwd=REPO, stdout=subprocess.PIPE, text=True)
-    try:
-        t0 = time.monotonic()
-        line = proc.stdout.readline()
-        while "physics" not in line and time.monotonic() - t0 < 60:
-            line = proc.stdout.readline()
-        assert "physics" in line, "fake_go2 did not start"
-        time.sleep(0.5)
-        proc.send_signal(sig)
-        out, _ = proc.communicate(timeout=15)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert proc.returncode == 0
+    returncode, out = signal_when_ready(cmd, "physics", sig, settle=0.5)
+    assert returncode == 0
     assert "fake_go2:" in out and "steps (" in out  # the final summary: the shutdown ran
 
 

@@ -29,6 +29,27 @@ def _run_soak(out: Path, *args: str, timeout: float) -> subprocess.CompletedProc
     return res
 
 
+def signal_when_ready(cmd: list[str], ready: str, sig: int, settle: float = 0.0) -> tuple[int, str]:
+    """Start `cmd` from a shell with SIGINT ignored (as a background job of a
+    non-interactive shell starts), wait up to 60 s for a stdout line containing `ready`,
+    `settle` s more, then send `sig`: (exit code, the rest of its stdout)."""
+    shell = "trap '' INT; exec " + " ".join(cmd)  # the exec'd tool inherits SIGINT ignored
+    proc = subprocess.Popen(["sh", "-c", shell], cwd=REPO, env=ENV, stdout=subprocess.PIPE, text=True)
+    try:
+        t0 = time.monotonic()
+        line = proc.stdout.readline()
+        while ready not in line and time.monotonic() - t0 < 60:
+            line = proc.stdout.readline()
+        assert ready in line, f"{cmd[2]} did not start (no line with {ready!r})"
+        time.sleep(settle)
+        proc.send_signal(sig)
+        out, _ = proc.communicate(timeout=15)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    return proc.returncode, out
+
+
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_a_deploy_tool_stops_cleanly_on_sigint_and_sigterm(sig):
     """A background job of a non-interactive shell starts with SIGINT ignored; systemd
@@ -37,20 +58,8 @@ def test_a_deploy_tool_stops_cleanly_on_sigint_and_sigterm(sig):
     port = free_port()
     cmd = [sys.executable, "-m", "legged_casters.deploy.bridge", "--listen", f"tcp/127.0.0.1:{port}"]
     cmd += ["--namespace", f"sig{os.getpid()}"]
-    shell = "trap '' INT; exec " + " ".join(cmd)  # the exec'd bridge inherits SIGINT ignored
-    proc = subprocess.Popen(["sh", "-c", shell], cwd=REPO, env=ENV, stdout=subprocess.PIPE, text=True)
-    try:
-        t0 = time.monotonic()
-        line = proc.stdout.readline()
-        while "keys" not in line and time.monotonic() - t0 < 60:
-            line = proc.stdout.readline()
-        assert "keys" in line, "the bridge did not start"
-        proc.send_signal(sig)
-        out, _ = proc.communicate(timeout=15)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert proc.returncode == 0
+    returncode, out = signal_when_ready(cmd, "keys", sig)
+    assert returncode == 0
     assert "bridge: state WAITING" in out  # the final summary: the finally block ran
 
 
