@@ -226,16 +226,22 @@ def configs_for(args: argparse.Namespace, spec, run_dir: Path | None, world: int
     return env_cfg, train_cfg, per_process_for(args, run_dir, world, train_cfg.env_per_process)
 
 
-def _stop_on_signals() -> None:
+def _stop_on_signals(once: bool = False) -> None:
     """Ctrl-C, `kill -INT` and `kill` (SIGTERM) all stop training the same way: the
     newest checkpoint is named with the command that continues from it. (A process a
-    script starts in the background ignores SIGINT unless it says otherwise.)"""
+    script starts in the background ignores SIGINT unless it says otherwise.) With `once`
+    (a worker of a distributed run) the first signal also ignores every later one:
+    torchrun's agent sends its workers the stop that a terminal's Ctrl-C already sent each
+    of them, and a second KeyboardInterrupt would cut the first one's report short."""
 
     def interrupt(signum, frame):
+        if once:  # a handler that does nothing: SIG_IGN would turn a signal already pending into an OSError
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(sig, lambda *_: None)
         raise KeyboardInterrupt
 
     if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGINT, interrupt if once else signal.default_int_handler)
         signal.signal(signal.SIGTERM, interrupt)
 
 
@@ -359,17 +365,23 @@ def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Pa
             evaluator = DeterministicEval(spec, env_cfg)
         budget = args.max_minutes * 60.0 if args.max_minutes is not None else None
         install_progress_hook(runner, args.console, task, evaluator, args.eval_every, budget)
-        _stop_on_signals()
+        _stop_on_signals(once=world > 1)
         try:
             runner.learn(num_learning_iterations=train_cfg.max_iterations, init_at_random_ep_len=True)
         except BudgetReached as stop:
             if rank == 0:
                 print(f"[{PROG}] --max_minutes {args.max_minutes:g}: stopped after iteration {stop.args[0]}")
         except KeyboardInterrupt:
-            latest = common.checkpoints(run_dir)
-            where = latest[-1][1] if latest else "(no checkpoint yet)"
-            print(f"\n[{PROG}] interrupted; newest checkpoint {where}", file=sys.stderr)
-            print(f"[{PROG}] continue with: python train.py --task {task} --resume --load_run {run_dir}")
+            if rank == 0:  # the run folder is rank 0's (the others never write theirs)
+                latest = common.checkpoints(run_dir)
+                procs = f" --procs {world}" if world > 1 and LAUNCHER_ENV in os.environ else ""
+                if latest:
+                    print(f"\n[{PROG}] interrupted; newest checkpoint {latest[-1][1]}", file=sys.stderr)
+                    print(f"[{PROG}] continue with: python train.py --task {task}{procs} --resume --load_run {run_dir}")
+                else:
+                    every = train_cfg.save_interval
+                    print(f"\n[{PROG}] interrupted before the first checkpoint (saved every {every} iterations): "
+                          f"nothing to continue from in {run_dir}", file=sys.stderr)  # fmt: skip
             return 130
     finally:
         env.close()
@@ -453,7 +465,7 @@ def launch_procs(args: argparse.Namespace, argv: list[str], default_log_root: Pa
     child += ["--num_envs", str(total // args.procs)]
     if args.log_root is None:
         child += ["--log_root", str(common.log_root(None, default_log_root))]
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nnodes=1"]
+    cmd = [sys.executable, "-m", "legged_casters.tools.launcher", "--standalone", "--nnodes=1"]
     cmd += [f"--nproc_per_node={args.procs}", "-m", "legged_casters.tools.train", *child]
     env = {**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")}
     env[LAUNCHER_ENV] = common.command_line(argv)
