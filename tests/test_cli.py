@@ -637,6 +637,26 @@ def test_kill_stops_training_like_ctrl_c(tmp_path):
         assert "interrupted; newest checkpoint" in out and "--resume --load_run" in out
 
 
+def test_a_stop_before_the_first_checkpoint_offers_no_resume(tmp_path):
+    """Stopped before anything was saved, train.py says there is nothing to continue from
+    instead of a --resume command that would fail."""
+    argv = [sys.executable, "train.py", "--task", TASK, "--num_envs", str(NUM_ENVS), "--sim_backend", "cpu",
+            "--log_root", str(tmp_path), "--max_iterations", "200", "--console", "line", *SMALL,
+            "--train-set", "save_interval=1000"]  # fmt: skip
+    proc = subprocess.Popen(argv, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines = []
+    for line in proc.stdout:
+        lines.append(line)
+        if " it 2/200" in line:
+            break
+    proc.send_signal(signal.SIGTERM)
+    out = "".join(lines) + proc.stdout.read()
+    assert proc.wait(60) == 130, out[-2000:]
+    assert "interrupted before the first checkpoint (saved every 1000 iterations)" in out, out[-2000:]
+    assert "no model_<iteration>.pt to continue from" in out and "--resume" not in out
+    assert not list(tmp_path.rglob("model_[0-9]*.pt"))  # (model_best.pt may exist: an evaluation, not a state)
+
+
 @needs_caster
 def test_play_tells_a_time_limit_reset_from_a_fall(tmp_path):
     """A reset at the episode's time limit is not a fall: the data marks it (time_out) and the

@@ -374,14 +374,14 @@ def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Pa
         except KeyboardInterrupt:
             if rank == 0:  # the run folder is rank 0's (the others never write theirs)
                 latest = common.checkpoints(run_dir)
-                procs = f" --procs {world}" if world > 1 and LAUNCHER_ENV in os.environ else ""
                 if latest:
+                    procs = f" --procs {world}" if world > 1 and LAUNCHER_ENV in os.environ else ""
                     print(f"\n[{PROG}] interrupted; newest checkpoint {latest[-1][1]}", file=sys.stderr)
                     print(f"[{PROG}] continue with: python train.py --task {task}{procs} --resume --load_run {run_dir}")
                 else:
                     every = train_cfg.save_interval
                     print(f"\n[{PROG}] interrupted before the first checkpoint (saved every {every} iterations): "
-                          f"nothing to continue from in {run_dir}", file=sys.stderr)  # fmt: skip
+                          f"no model_<iteration>.pt to continue from in {run_dir}", file=sys.stderr)  # fmt: skip
             return 130
     finally:
         env.close()
