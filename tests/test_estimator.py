@@ -196,20 +196,21 @@ def test_speed_set_checks_slalom_ramp_and_sweep_bars():
 
 
 @pytest.mark.parametrize(
-    "name, history, reads_command",
-    [("caster_omni_speed", 10, True), ("caster_omni_anneal", 10, True), ("caster_omni_clock", 10, True),
-     ("caster_omni_track", 50, False), ("caster_omni_sym", 50, False)],
+    "name, history, reads_command, task",
+    [("caster_omni_speed", 10, True, TASK), ("caster_omni_anneal", 10, True, TASK),
+     ("caster_omni_clock", 10, True, TASK), ("caster_omni_track", 50, False, TASK),
+     ("caster_omni_sym", 50, False, TASK), ("caster_omni_backlaw", 50, False, "caster_omni_sym")],
 )  # fmt: skip
-def test_the_shipped_estimator_policy_loads_everywhere_and_estimates_its_speed(name, history, reads_command):
+def test_the_shipped_estimator_policy_loads_everywhere_and_estimates_its_speed(name, history, reads_command, task):
     from legged_casters.deploy.policy import load_meta
     from legged_casters.tools import common
     from legged_casters.tools import evaluate as ev
 
     shipped = common.SHIPPED_POLICIES / name
     meta = load_meta(shipped)  # the bridge accepts it
-    assert meta.task == TASK and meta.history_length == history
-    task, spec, env_cfg, policy, _, dim = ev.load_exported(shipped, None)
-    assert task == TASK and policy.estimate is not None
+    assert meta.task == task and meta.history_length == history
+    loaded_task, spec, env_cfg, policy, _, dim = ev.load_exported(shipped, None)
+    assert loaded_task == task and policy.estimate is not None
     assert env_cfg.gait.speed_feedback == 1.0  # its prior reads the estimate
     scen = (ev.Scenario("fwd", ((0.0, (0.5, 0.0, 0.0)),), 5.0, 3.0),)
     e = spec.env_class(ev.eval_env_cfg(env_cfg, scen))

@@ -60,6 +60,7 @@ SPEED_POLICIES = (
     "caster_omni_clock",
     "caster_omni_track",
     "caster_omni_sym",
+    "caster_omni_backlaw",
 )
 """Further shipped caster policies (folders under resources/policies/) that the flat-ground
 experiments (Fig. 6, 9, 10, the slalom and Table II's flat COT) also run, each with rows and
