@@ -580,9 +580,10 @@ class PathFollower:
         return bool(past) and p_now - past[-1] < metres
 
 
-def trained_on(task: str) -> str:
-    """'trained on slopes' when the shipped policy's config spawned it on a terrain course."""
-    exp = common.read_export(_shipped(task) / "policy.pt", task)
+def trained_on(policy: str) -> str:
+    """'trained on slopes' when the shipped policy's config spawned it on a terrain course
+    (`policy`: its folder under resources/policies/; the task is the one its policy.yaml names)."""
+    exp = common.read_export(_shipped(policy) / "policy.pt", None)
     t = exp.env_cfg.terrain
     return "trained on slopes" if t.segments and t.spawn_on_course else "trained on flat ground"
 
