@@ -1,7 +1,12 @@
+import subprocess
+from pathlib import Path
+
 import mujoco
 import pytest
 
 from legged_casters.robot import build
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="session")
@@ -23,6 +28,28 @@ def wheel_model() -> mujoco.MjModel:
 def models(caster_model, point_model, wheel_model) -> dict[str, mujoco.MjModel]:
     """feet kind -> the committed model."""
     return {"caster": caster_model, "point": point_model, "wheel": wheel_model}
+
+
+@pytest.fixture
+def stop_training():
+    """A function that starts a training command line in the repository, reads its output
+    until a line contains `at` (e.g. " it 2/200"), calls `stop(proc)` (sends the signal) and
+    returns (proc, all its output) once it has exited (60 s at most); `popen` goes to
+    subprocess.Popen."""
+
+    def run(cmd: list[str], at: str, stop, **popen) -> tuple[subprocess.Popen, str]:
+        proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, **popen)
+        lines = []
+        for line in proc.stdout:
+            lines.append(line)
+            if at in line:
+                break
+        stop(proc)
+        out = "".join(lines) + proc.stdout.read()
+        proc.wait(60)
+        return proc, out
+
+    return run
 
 
 REALTIME_TRIES = 3

@@ -617,41 +617,29 @@ def test_each_shipped_policy_played_gets_its_own_output_folder(tmp_path):
     assert outs == [tmp_path / "caster_omni" / "play_caster_omni", tmp_path / "caster_omni" / "play_caster_omni_sym"]
 
 
-def test_kill_stops_training_like_ctrl_c(tmp_path):
+def _train_cmd(root: Path, *extra: str) -> list[str]:
+    """train.py as a user starts it, small, 200 iterations under `root`."""
+    return [sys.executable, "train.py", "--task", TASK, "--num_envs", str(NUM_ENVS), "--sim_backend", "cpu",
+            "--log_root", str(root), "--max_iterations", "200", "--console", "line", *SMALL, *extra]  # fmt: skip
+
+
+def test_kill_stops_training_like_ctrl_c(tmp_path, stop_training):
     """SIGTERM (and SIGINT to a process started in the background, which would otherwise
     ignore it) ends training with the newest checkpoint and the command that continues."""
-    argv = [sys.executable, "train.py", "--task", TASK, "--num_envs", str(NUM_ENVS), "--sim_backend", "cpu",
-            "--log_root", str(tmp_path), "--max_iterations", "200", "--console", "line", *SMALL]  # fmt: skip
     for sig in (signal.SIGTERM, signal.SIGINT):
         # started as a shell script's `train.py &` would be: SIGINT ignored
-        proc = subprocess.Popen(argv, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))  # fmt: skip
-        lines = []
-        for line in proc.stdout:
-            lines.append(line)
-            if " it 2/200" in line:
-                break
-        proc.send_signal(sig)
-        out = "".join(lines) + proc.stdout.read()
-        assert proc.wait(60) == 130, out[-2000:]
+        proc, out = stop_training(_train_cmd(tmp_path), " it 2/200", lambda p, sig=sig: p.send_signal(sig),
+                                  preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))  # fmt: skip
+        assert proc.returncode == 130, out[-2000:]
         assert "interrupted; newest checkpoint" in out and "--resume --load_run" in out
 
 
-def test_a_stop_before_the_first_checkpoint_offers_no_resume(tmp_path):
+def test_a_stop_before_the_first_checkpoint_offers_no_resume(tmp_path, stop_training):
     """Stopped before anything was saved, train.py says there is nothing to continue from
     instead of a --resume command that would fail."""
-    argv = [sys.executable, "train.py", "--task", TASK, "--num_envs", str(NUM_ENVS), "--sim_backend", "cpu",
-            "--log_root", str(tmp_path), "--max_iterations", "200", "--console", "line", *SMALL,
-            "--train-set", "save_interval=1000"]  # fmt: skip
-    proc = subprocess.Popen(argv, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    lines = []
-    for line in proc.stdout:
-        lines.append(line)
-        if " it 2/200" in line:
-            break
-    proc.send_signal(signal.SIGTERM)
-    out = "".join(lines) + proc.stdout.read()
-    assert proc.wait(60) == 130, out[-2000:]
+    cmd = _train_cmd(tmp_path, "--train-set", "save_interval=1000")
+    proc, out = stop_training(cmd, " it 2/200", lambda p: p.send_signal(signal.SIGTERM))
+    assert proc.returncode == 130, out[-2000:]
     assert "interrupted before the first checkpoint (saved every 1000 iterations)" in out, out[-2000:]
     assert "no model_<iteration>.pt to continue from" in out and "--resume" not in out
     assert not list(tmp_path.rglob("model_[0-9]*.pt"))  # (model_best.pt may exist: an evaluation, not a state)

@@ -148,7 +148,7 @@ def test_procs_launches_one_pinned_process_per_core(tmp_path):
 
 
 @pytest.mark.parametrize("to_group", [True, False], ids=["ctrl_c_in_a_terminal", "kill_the_launcher"])
-def test_procs_stops_like_one_process(tmp_path, to_group):
+def test_procs_stops_like_one_process(tmp_path, to_group, stop_training):
     """A Ctrl-C in a terminal (SIGINT to the whole process group) or SIGTERM to train.py
     alone stops a --procs 2 run as a one-process run stops: exit 130 / 143, one
     "interrupted" line that names the run folder rank 0 writes, the command that continues
@@ -158,19 +158,15 @@ def test_procs_stops_like_one_process(tmp_path, to_group):
         pytest.skip("needs 2 usable cores")
     cmd = [sys.executable, str(REPO / "train.py"), *TINY[:2], "--procs", "2", "--num_envs", "8", *TINY[4:]]
     cmd += ["--log_root", str(tmp_path), "--max_iterations", "5000", "--train-set", "save_interval=1"]
-    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            start_new_session=True)  # fmt: skip
-    lines = []
-    for line in proc.stdout:
-        lines.append(line)
-        if " it 3/5000" in line:
-            break
-    if to_group:
-        os.killpg(proc.pid, signal.SIGINT)
-    else:
-        proc.send_signal(signal.SIGTERM)
-    out = "".join(lines) + proc.stdout.read()
-    assert proc.wait(60) == (130 if to_group else 143), out[-3000:]
+
+    def stop(proc):
+        if to_group:
+            os.killpg(proc.pid, signal.SIGINT)
+        else:
+            proc.send_signal(signal.SIGTERM)
+
+    proc, out = stop_training(cmd, " it 3/5000", stop, start_new_session=True)
+    assert proc.returncode == (130 if to_group else 143), out[-3000:]
     (run_dir,) = (tmp_path / TASK).iterdir()
     assert out.count("interrupted; newest checkpoint") == 1, out[-3000:]
     resume = f"continue with: python train.py --task {TASK} --procs 2 --resume --load_run {run_dir}\n"
