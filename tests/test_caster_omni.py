@@ -204,21 +204,25 @@ def test_sim2sim_conditions_keep_the_control_period():
     spec = registry.get_task("caster_omni")
     cfg, _ = registry.task_configs("caster_omni")
     scenarios = E.QUICK[:1]
-    cond = E.condition_overrides(cfg, physics_dt=0.002, latency_ms=20.0, noise=True)
+    cond = E.condition_overrides(cfg, physics_dt=0.002, latency_ms=20.0, noise=True, obs_delay_ms=6.0)
     env = spec.env_class(E.eval_env_cfg(cfg, scenarios, condition=cond))
     try:
         assert env.sim.physics_dt == pytest.approx(0.002)
         assert env.sim.decimation == 10 and env.dt == pytest.approx(0.02)
-        assert (env.latency_steps == 10).all()
+        assert (env.latency_steps == 10).all() and (env.obs_delay_steps == 3).all()
         assert env.cfg.noise.enabled
     finally:
         env.close()
     trained, _ = registry.task_configs("caster_omni", ["domain_rand.action_latency_range=[0, 0.02]"])
     assert tuple(E.eval_env_cfg(trained, scenarios).domain_rand.action_latency_range) == (0.0, 0.0)
+    trained, _ = registry.task_configs("caster_omni", ["domain_rand.observation_delay_range=[0, 0.02]"])
+    assert tuple(E.eval_env_cfg(trained, scenarios).domain_rand.observation_delay_range) == (0.0, 0.0)
     with pytest.raises(UsageError, match="whole number"):
         E.condition_overrides(cfg, physics_dt=0.003)
     with pytest.raises(UsageError, match="control period"):
         E.condition_overrides(cfg, latency_ms=30.0)
+    with pytest.raises(UsageError, match="observation-delay-ms 25: must be between 0 and the control period"):
+        E.condition_overrides(cfg, obs_delay_ms=25.0)
     base = E.ScenarioResult("vx +0.5", "track", (0.5, 0.0, 0.0), {}, {"vx": 0.1, "vy": 0.05, "wz": 0.2})
     worse = E.ScenarioResult("vx +0.5", "track", (0.5, 0.0, 0.0), {}, {"vx": 0.3, "vy": 0.05, "wz": 0.1}, falls=1)
     table = E.format_sim2sim(

@@ -795,6 +795,7 @@ def test_evaluate_ranks_checkpoints_against_the_robot_clock_bar(run_5ms):
         (["--sim2sim", "--robot-clock"], "not both"),
         (["--robot-clock", "--checkpoint", "1"], "needs a task whose config sets sim.timestep"),
         (["--robot-clock", "--physics-dt", "0.002"], "runs its own conditions"),
+        (["--sim2sim", "--observation-delay-ms", "10"], "leave out --physics-dt, --action-latency-ms, --observation"),
         (["--checkpoints", "1", "--robot-clock", "--seeds", "x"], "expected seeds >= 0"),
         (["--seeds", "0-1", "--seed", "3"], "not both"),
         (["--seeds", "x"], "expected seeds >= 0"),

@@ -226,6 +226,48 @@ def test_two_iterations_of_rsl_rl_ppo(tmp_path):
     assert "actor_state_dict" in state or any("actor" in k for k in state)
 
 
+def test_observation_delay_of_a_whole_period_shows_the_policy_the_previous_state():
+    """domain_rand.observation_delay_range = (dt, dt): the policy's state terms (joint_pos,
+    joint_vel, ang_vel, projected_gravity) are those the undelayed env showed one step
+    earlier, while its actions term, the critic and the env's own state are the present; the
+    first observation after a reset has no delay. A delay beyond the control period is
+    refused."""
+    fixed = CPU + [f"domain_rand.{k}=false" for k in ("randomize_gains", "randomize_friction", "randomize_base_mass")]
+    fixed += ["domain_rand.randomize_com=false", "domain_rand.push_robots=false", "noise.enabled=false"]
+    fixed += ["init_state.joint_pos_noise=0.0", "init_state.base_vel_noise=0.0", "init_state.random_yaw=false"]
+    plain = registry.make_env("go2_flat", fixed, num_envs=2)
+    period = plain.dt
+    late = registry.make_env(
+        "go2_flat", [*fixed, f"domain_rand.observation_delay_range=[{period}, {period}]"], num_envs=2
+    )
+    assert (late.obs_delay_steps == late.sim.decimation).all() and (plain.obs_delay_steps == 0).all()
+    cols = plain.policy_obs_columns()
+    state = [cols[t] for t in ("ang_vel", "projected_gravity", "joint_pos", "joint_vel")]
+    g = torch.Generator().manual_seed(0)
+    actions = [0.5 * torch.randn(2, plain.num_actions, generator=g) for _ in range(3)]
+    first = []
+    for e in (plain, late):
+        e.set_commands([0.5, 0.0, 0.2])  # the delay's draws shift the random stream: same commands by hand
+        first.append(e.reset()["policy"].clone())
+    torch.testing.assert_close(first[1], first[0])  # no delay right after a reset
+    shown = [first[0]]
+    for a in actions:
+        plain_obs, _, _, _ = plain.step(a)
+        late_obs, _, _, _ = late.step(a)
+        torch.testing.assert_close(late.joint_pos, plain.joint_pos)  # the physics is not delayed
+        torch.testing.assert_close(late_obs["critic"], plain_obs["critic"])
+        for lo, hi in state:
+            torch.testing.assert_close(late_obs["policy"][:, lo:hi], shown[-1][:, lo:hi], atol=1e-6, rtol=0)
+        lo, hi = cols["actions"]
+        torch.testing.assert_close(late_obs["policy"][:, lo:hi], plain_obs["policy"][:, lo:hi])
+        shown.append(plain_obs["policy"].clone())
+    assert not torch.allclose(shown[-1], shown[-2])  # the robot moved: the test compares something
+    with pytest.raises(ValueError, match="control period"):
+        registry.make_env("go2_flat", [*fixed, f"domain_rand.observation_delay_range=[0, {2 * period}]"], num_envs=2)
+    plain.close()
+    late.close()
+
+
 def test_set_commands_holds_them_through_timers_and_resets():
     e = registry.make_env("go2_flat", CPU + ["commands.resampling_time=0.1"], num_envs=3)
     e.set_commands([0.6, -0.2, 0.3])

@@ -239,3 +239,43 @@ def test_action_latency_holds_the_previous_targets(model, kind):
             d.ctrl[:] = (held if k < 4 else ctrl)[2].numpy()
             mujoco.mj_step(model, d)
         np.testing.assert_allclose(q[2].numpy(), d.qpos, atol=2e-4, rtol=0)
+
+
+@pytest.mark.parametrize("kind", BACKENDS)
+def test_delayed_state_is_the_state_that_many_substeps_back(model, kind):
+    """delayed_state(steps) after keep_substep_states(): 0 gives the current state, `decimation`
+    the state the step began from, and k in between the state after decimation - k substeps
+    (what a backend stepping only that many substeps reaches). Without keep_substep_states a
+    delay is refused, and a step count outside [0, decimation] too."""
+    n, lag = 3, 4
+    qpos, qvel = _perturbed_stand(model, n, seed=5)
+    (ctrl,) = _targets(1, n, 0.15, seed=6)
+
+    def stepped(decimation: int, keep: bool):
+        backend = make_backend(kind, model, n, decimation, "cpu")
+        if keep:
+            backend.keep_substep_states()
+        backend.reset(None, qpos.to(backend.qpos.dtype), qvel.to(backend.qvel.dtype))
+        backend.step(ctrl.to(backend.ctrl.dtype))
+        return backend
+
+    backend = stepped(DECIMATION, keep=True)
+    q, v = backend.delayed_state(torch.tensor([0, DECIMATION, lag]))
+    torch.testing.assert_close(q[0], backend.qpos[0])
+    torch.testing.assert_close(v[0], backend.qvel[0])
+    torch.testing.assert_close(q[1].double(), qpos[1], atol=1e-6, rtol=0)
+    torch.testing.assert_close(v[1].double(), qvel[1], atol=1e-6, rtol=0)
+    shorter = stepped(DECIMATION - lag, keep=False)
+    torch.testing.assert_close(q[2], shorter.qpos[2], atol=1e-6, rtol=0)
+    torch.testing.assert_close(v[2], shorter.qvel[2], atol=1e-4, rtol=0)
+    assert (q[2] - backend.qpos[2]).abs().max() > 1e-4  # the lag is not the present
+    with pytest.raises(ValueError, match=r"\[0, 10\]"):
+        backend.delayed_state(torch.tensor([0, DECIMATION + 1, 0]))
+    shorter.close()
+    plain = stepped(DECIMATION, keep=False)
+    with pytest.raises(RuntimeError, match="keep_substep_states"):
+        plain.delayed_state(torch.tensor([0, 1, 0]))
+    q0, _ = plain.delayed_state(torch.zeros(n, dtype=torch.long))
+    torch.testing.assert_close(q0, plain.qpos)
+    for b in (backend, plain):
+        b.close()

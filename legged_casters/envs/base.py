@@ -12,6 +12,7 @@ episode sums in extras["log"].
 
 from __future__ import annotations
 
+import contextlib
 import fnmatch
 import math
 
@@ -135,12 +136,16 @@ class LeggedEnv(VecEnv):
         """Physics substeps each env's actuators keep the previous targets (action latency)."""
         self.held_targets = torch.zeros(n, self.num_actions, device=dev)
         """The targets of the previous control step (what a delayed command leaves applied)."""
-        lo, hi = self.cfg.domain_rand.action_latency_range
-        if not 0.0 <= lo <= hi <= self.dt + 1e-9:
-            raise ValueError(
-                f"domain_rand.action_latency_range {(lo, hi)}: need 0 <= low <= high <= the control period "
-                f"{self.dt:g} s"
-            )
+        self.obs_delay_steps = torch.zeros(n, dtype=torch.long, device=dev)
+        """Physics substeps each env's policy observation lags the simulation (observation delay)."""
+        for name in ("action_latency_range", "observation_delay_range"):
+            lo, hi = getattr(self.cfg.domain_rand, name)
+            if not 0.0 <= lo <= hi <= self.dt + 1e-9:
+                raise ValueError(
+                    f"domain_rand.{name} {(lo, hi)}: need 0 <= low <= high <= the control period {self.dt:g} s"
+                )
+        if self._obs_delay_on:
+            self.sim.keep_substep_states()
         cmd_cfg = self.cfg.commands
         if cmd_cfg.curriculum_mode == "edge" and cmd_cfg.curriculum_settle_s >= cmd_cfg.resampling_time:
             raise ValueError(
@@ -324,7 +329,17 @@ class LeggedEnv(VecEnv):
 
     def _refresh_state(self) -> None:
         # float32 copies: the CPU backend simulates in float64, the env computes in float32.
-        qpos, qvel = self.sim.qpos.float(), self.sim.qvel.float()
+        self._set_body_state(self.sim.qpos.float(), self.sim.qvel.float())
+        self.torques = self.sensor_values(self._torque_sensors)
+
+    BODY_STATE: tuple[str, ...] = (
+        "base_pos", "base_height", "base_quat", "base_lin_vel_world", "base_lin_vel", "base_ang_vel",
+        "projected_gravity", "joint_pos", "joint_vel",
+    )  # fmt: skip
+    """The attributes _set_body_state derives from qpos and qvel (what an observation delay delays)."""
+
+    def _set_body_state(self, qpos: torch.Tensor, qvel: torch.Tensor) -> None:
+        """BODY_STATE from the generalized positions and velocities (float32)."""
         self.base_pos = qpos[:, 0:3]
         self.base_height = self.base_pos[:, 2]
         """Trunk height above the ground under it (the floor, or the terrain course)."""
@@ -340,7 +355,23 @@ class LeggedEnv(VecEnv):
         self.projected_gravity = quat_rotate_inverse(self.base_quat, gravity)
         self.joint_pos = qpos[:, self.joint_qadr]
         self.joint_vel = qvel[:, self.joint_dadr]
-        self.torques = self.sensor_values(self._torque_sensors)
+
+    @contextlib.contextmanager
+    def _observed_body_state(self):
+        """BODY_STATE as the policy's sensors saw it, obs_delay_steps substeps before now
+        (observation delay; none in an env's first step after a reset), restored on exit."""
+        steps = torch.where(self.episode_length_buf > 0, self.obs_delay_steps, 0)
+        if not self._obs_delay_on or not bool((steps > 0).any()):
+            yield
+            return
+        present = {name: getattr(self, name) for name in self.BODY_STATE}
+        qpos, qvel = self.sim.delayed_state(steps)
+        self._set_body_state(qpos.float(), qvel.float())
+        try:
+            yield
+        finally:
+            for name, value in present.items():
+                setattr(self, name, value)
 
     # --- stepping ---------------------------------------------------------------------
     def get_observations(self) -> TensorDict:
@@ -651,6 +682,10 @@ class LeggedEnv(VecEnv):
     def _latency_on(self) -> bool:
         return self.cfg.domain_rand.action_latency_range[1] > 0.0
 
+    @property
+    def _obs_delay_on(self) -> bool:
+        return self.cfg.domain_rand.observation_delay_range[1] > 0.0
+
     def _draw_obs_bias(self, env_ids: torch.Tensor) -> None:
         """A new constant observation offset (noise.bias) for these envs; nothing without one
         (no random number is drawn, so runs without a bias keep their random streams)."""
@@ -667,6 +702,9 @@ class LeggedEnv(VecEnv):
             steps = torch.round(_uniform(*dr.action_latency_range, (n,), dev) / self.sim.physics_dt).long()
             self.latency_steps[env_ids] = steps.clamp(0, self.sim.decimation)
             self.held_targets[env_ids] = self.action_targets(torch.zeros(n, self.num_actions, device=dev))
+        if self._obs_delay_on:
+            steps = torch.round(_uniform(*dr.observation_delay_range, (n,), dev) / self.sim.physics_dt).long()
+            self.obs_delay_steps[env_ids] = steps.clamp(0, self.sim.decimation)
         if dr.randomize_friction:
             friction = torch.tensor(m.geom_friction, dtype=torch.float32, device=dev).expand(n, -1, -1).clone()
             friction[:, :, 0] = _uniform(*dr.friction_range, (n, 1), dev)
@@ -710,7 +748,11 @@ class LeggedEnv(VecEnv):
         clip = self.cfg.observations.clip
         groups = {}
         for group, layout in self.obs_layout.items():
-            parts = [getattr(self, f"_obs_{term}")() * scale for term, _, scale in layout]
+            if group == "policy":
+                with self._observed_body_state():
+                    parts = [getattr(self, f"_obs_{term}")() * scale for term, _, scale in layout]
+            else:
+                parts = [getattr(self, f"_obs_{term}")() * scale for term, _, scale in layout]
             obs = torch.cat(parts, dim=1) if parts else torch.zeros(self.num_envs, 0, device=self.device)
             if group == "policy" and self.noise_vec.numel():
                 obs = obs + (2 * torch.rand_like(obs) - 1) * self.noise_vec

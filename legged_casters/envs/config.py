@@ -135,6 +135,15 @@ class DomainRandCfg:
     start of each control step the actuators keep the previous step's targets, as a
     robot's do while the command is computed and sent. Evaluated with evaluate.py
     --action-latency-ms."""
+    observation_delay_range: tuple[float, float] = (0.0, 0.0)
+    """Seconds by which the policy's observation lags the simulation, per env, drawn at
+    reset and rounded to whole physics steps (at most one control period): its state terms
+    (ang_vel, projected_gravity, joint_pos, joint_vel, and any other term read from the
+    trunk and joint state) come from the state that long before the end of the step, as a
+    robot's sensors are read, filtered and sent before its policy runs. The history
+    records what the policy observed; the critic, rewards and terminations see the
+    present. The first observation after a reset has no delay. Evaluated with evaluate.py
+    --observation-delay-ms."""
     push_robots: bool = True
     push_interval_s: float = field(default=8.0, metadata={"min": 0.02})
     max_push_vel_xy: float = field(default=0.5, metadata={"min": 0.0})

@@ -11,6 +11,8 @@ only through torch tensors shaped (num_envs, n):
   their derived quantities, so their `sensordata` matches the new state;
 * `set_model_field` / `get_model_field`: per-env domain randomisation of the model
   parameters in `RANDOMIZABLE_FIELDS`;
+* `keep_substep_states()` / `delayed_state(steps)`: the state each env had a given number
+  of substeps before the end of the last step (an observation delay shorter than a step);
 * `apply_force(env_ids, body, force)`: a Cartesian force (and optionally torque) on a
   body, held for the next `step` only (one control period), then cleared.
 
@@ -119,6 +121,7 @@ class SimBackend(abc.ABC):
         self.physics_dt = float(model.opt.timestep)
         self.control_dt = self.physics_dt * self.decimation
         self._sensor_slices = sensor_slices(model)
+        self._keeping_substeps = False
 
     # --- state views ---------------------------------------------------------------
     @property
@@ -141,6 +144,29 @@ class SimBackend(abc.ABC):
         last `step` where the backend keeps them (MuJoCo C: k = decimation), else after
         the last substep only (k = 1). Rows of a substep before a reset are stale."""
         return self.sensordata.unsqueeze(1)
+
+    @abc.abstractmethod
+    def keep_substep_states(self) -> None:
+        """From the next `step` on, keep qpos and qvel at the start of each step and after
+        each of its substeps, for `delayed_state` (observation delay). Off by default: a
+        run without it records nothing."""
+
+    @abc.abstractmethod
+    def delayed_state(self, steps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(qpos, qvel), (num_envs, nq) and (num_envs, nv): env i's state `steps[i]` physics
+        substeps before now, 0 <= steps[i] <= decimation (0: the current state, as `qpos` /
+        `qvel`; decimation: as the last `step` began). Needs `keep_substep_states()` before
+        that step; an env reset since has only its current state (give it 0)."""
+
+    def _check_delay_steps(self, steps: torch.Tensor) -> torch.Tensor:
+        steps = torch.as_tensor(steps).reshape(-1).long()
+        if steps.numel() != self.num_envs:
+            raise ValueError(f"steps must have {self.num_envs} entries, got {steps.numel()}")
+        if bool((steps < 0).any()) or bool((steps > self.decimation).any()):
+            raise ValueError(f"steps must lie in [0, {self.decimation}] (the substeps of one step)")
+        if bool((steps > 0).any()) and not self._keeping_substeps:
+            raise RuntimeError("delayed_state needs keep_substep_states() before the step it looks into")
+        return steps
 
     @property
     @abc.abstractmethod

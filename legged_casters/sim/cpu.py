@@ -82,6 +82,7 @@ class CpuBackend(SimBackend):
         ):
             raise RuntimeError("unexpected mjSTATE_FULLPHYSICS layout in this MuJoCo version")
         self._state[:] = self._state[0]
+        self._state_start: np.ndarray | None = None  # the state as each step began (keep_substep_states)
         self._state_out = np.empty((num_envs, decimation, self.nstate))
         self._sens_out = np.empty((num_envs, decimation, self.nsensordata))
         self._sens_out[:, -1] = init.sensordata
@@ -159,6 +160,8 @@ class CpuBackend(SimBackend):
             first = np.arange(self.decimation)[None, :] < k  # (num_envs, decimation)
             envs, substeps = np.nonzero(first)
             control[envs, substeps, : self.nu] = _to_numpy(held)[envs]
+        if self._state_start is not None:
+            self._state_start[:] = self._state
         self._pool.rollout(
             self._models,
             self._datas,
@@ -181,6 +184,22 @@ class CpuBackend(SimBackend):
             self._xfrc[:] = 0.0
             self._xfrc_pending = False
         self._refresh_device_copies()
+
+    def keep_substep_states(self) -> None:
+        # The rollout writes every substep's state anyway (_state_out); only the start is kept.
+        if self._state_start is None:
+            self._state_start = self._state.copy()
+        self._keeping_substeps = True
+
+    def delayed_state(self, steps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        k = self._check_delay_steps(steps).cpu().numpy()
+        out = self._state.copy()
+        for lag in np.unique(k[k > 0]):
+            rows = np.nonzero(k == lag)[0]
+            slot = self.decimation - lag  # 0: the step's start, s: after substep s
+            out[rows] = self._state_start[rows] if slot == 0 else self._state_out[rows, slot - 1]
+        qpos = torch.from_numpy(out[:, self._qpos_sl]).to(self.device)
+        return qpos, torch.from_numpy(out[:, self._qvel_sl]).to(self.device)
 
     def reset(self, env_ids: IndexLike, qpos: torch.Tensor, qvel: torch.Tensor) -> None:
         ids = self.env_index(env_ids)

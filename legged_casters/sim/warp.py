@@ -53,6 +53,23 @@ def _delayed_ctrl(
         ctrl[w, i] = target[w, i]
 
 
+@wp.kernel
+def _record_state(
+    slot: int,
+    qpos: wp.array2d(dtype=wp.float32),
+    qvel: wp.array2d(dtype=wp.float32),
+    qpos_out: wp.array3d(dtype=wp.float32),
+    qvel_out: wp.array3d(dtype=wp.float32),
+):
+    """Observation delay: world w's qpos and qvel into row `slot` of its record (0: the step's
+    start, s: after substep s)."""
+    w = wp.tid()
+    for i in range(qpos.shape[1]):
+        qpos_out[w, slot, i] = qpos[w, i]
+    for i in range(qvel.shape[1]):
+        qvel_out[w, slot, i] = qvel[w, i]
+
+
 class WarpBackend(SimBackend):
     name = "warp"
 
@@ -101,6 +118,7 @@ class WarpBackend(SimBackend):
         self._delayed_graph = None
         self._forward_graph = None
         self._delay: dict[str, wp.array] | None = None  # action-latency buffers, made on first use
+        self._record: tuple[wp.array, wp.array] | None = None  # substep states (keep_substep_states)
 
     # --- views -----------------------------------------------------------------------
     @property
@@ -121,15 +139,43 @@ class WarpBackend(SimBackend):
 
     # --- simulation --------------------------------------------------------------------
     def _substeps(self) -> None:
-        for _ in range(self.decimation):
+        for k in range(self.decimation):
+            self._record_substep(k)
             mjw.step(self.wm, self.wd)
 
     def _delayed_substeps(self) -> None:
         d = self._delay
         for k in range(self.decimation):
+            self._record_substep(k)
             inputs = [k, d["steps"], d["held"], d["target"], self.wd.ctrl]
             wp.launch(_delayed_ctrl, dim=(self.num_envs, self.nu), inputs=inputs)
             mjw.step(self.wm, self.wd)
+
+    def _record_substep(self, slot: int) -> None:
+        """The state before substep `slot` (= after substep slot - 1), kept for delayed_state."""
+        if self._record is not None:
+            inputs = [slot, self.wd.qpos, self.wd.qvel, *self._record]
+            wp.launch(_record_state, dim=self.num_envs, inputs=inputs)
+
+    def keep_substep_states(self) -> None:
+        if self._record is None:
+            with wp.ScopedDevice(self.wp_device):
+                self._record = (
+                    wp.zeros((self.num_envs, self.decimation, self.nq), dtype=wp.float32),
+                    wp.zeros((self.num_envs, self.decimation, self.nv), dtype=wp.float32),
+                )
+            self._step_graph = self._delayed_graph = None  # recapture with the recording
+        self._keeping_substeps = True
+
+    def delayed_state(self, steps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        k = self._check_delay_steps(steps).to(self.device)
+        qpos, qvel = self._qpos.clone(), self._qvel.clone()
+        lagged = torch.nonzero(k > 0).flatten()
+        if len(lagged):
+            slot = self.decimation - k[lagged]  # 0: the step's start, s: after substep s
+            qpos[lagged] = wp.to_torch(self._record[0])[lagged, slot]
+            qvel[lagged] = wp.to_torch(self._record[1])[lagged, slot]
+        return qpos, qvel
 
     def _forward(self) -> None:
         mjw.forward(self.wm, self.wd)

@@ -182,6 +182,7 @@ EVAL_SETTINGS = {
     "domain_rand.joint_damping": {},
     "domain_rand.joint_frictionloss_scale": {},
     "domain_rand.action_latency_range": (0.0, 0.0),
+    "domain_rand.observation_delay_range": (0.0, 0.0),
     "init_state.joint_pos_noise": 0.0,
     "init_state.base_vel_noise": 0.0,
     "init_state.random_yaw": False,
@@ -231,11 +232,16 @@ scenario robot."""
 
 
 def condition_overrides(
-    env_cfg, physics_dt: float | None = None, latency_ms: float = 0.0, noise: bool = False, imu_bias: bool = False
+    env_cfg,
+    physics_dt: float | None = None,
+    latency_ms: float = 0.0,
+    noise: bool = False,
+    imu_bias: bool = False,
+    obs_delay_ms: float = 0.0,
 ):
     """Env overrides that evaluate a policy off its training conditions, same control period:
     another physics step (the decimation follows), a fixed action latency, the training's
-    observation noise, an IMU bias (IMU_BIAS)."""
+    observation noise, an IMU bias (IMU_BIAS), a fixed observation delay."""
     out: dict = {}
     control_dt = env_cfg.sim.timestep * env_cfg.sim.decimation if env_cfg.sim.timestep else None
     if physics_dt is not None:
@@ -255,6 +261,10 @@ def condition_overrides(
         if latency_ms < 0 or (control_dt is not None and latency_ms / 1e3 > control_dt + 1e-9):
             raise UsageError(f"--action-latency-ms {latency_ms:g}: must be between 0 and the control period")
         out["domain_rand.action_latency_range"] = (latency_ms / 1e3, latency_ms / 1e3)
+    if obs_delay_ms:
+        if obs_delay_ms < 0 or (control_dt is not None and obs_delay_ms / 1e3 > control_dt + 1e-9):
+            raise UsageError(f"--observation-delay-ms {obs_delay_ms:g}: must be between 0 and the control period")
+        out["domain_rand.observation_delay_range"] = (obs_delay_ms / 1e3, obs_delay_ms / 1e3)
     if noise:
         out["noise.enabled"] = True
     if imu_bias:
@@ -267,6 +277,7 @@ SIM2SIM = (
     ("2 ms physics", {"physics_dt": 0.002}),
     ("10 ms action latency", {"latency_ms": 10.0}),
     ("20 ms action latency", {"latency_ms": 20.0}),
+    ("20 ms observation delay", {"obs_delay_ms": 20.0}),
     ("observation noise on", {"noise": True}),
     ("IMU bias", {"imu_bias": True}),
     ("2 ms + 20 ms latency + noise", {"physics_dt": 0.002, "latency_ms": 20.0, "noise": True}),
@@ -653,6 +664,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stochastic", action="store_true", help="checkpoints only: sample actions with the actor's noise")
     p.add_argument("--physics-dt", type=float, help="physics step (s), same control period (default: the task's)")
     p.add_argument("--action-latency-ms", type=float, default=0.0, help="action latency (ms, whole physics steps)")
+    p.add_argument(
+        "--observation-delay-ms", type=float, default=0.0, help="observation delay (ms, whole physics steps)"
+    )
     p.add_argument("--noise", action="store_true", help="with the training's observation noise")
     p.add_argument("--imu-bias", action="store_true", help="with a constant IMU bias per robot (IMU_BIAS)")
     p.add_argument(
@@ -684,8 +698,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--sim2sim",
         action="store_true",
-        help="the checks under each condition of SIM2SIM (5 ms, 2 ms, latency, noise, IMU bias) and their change "
-        "from 5 ms",
+        help="the checks under each condition of SIM2SIM (5 ms, 2 ms, latency, observation delay, noise, IMU bias) "
+        "and their change from 5 ms",
     )
     p.add_argument(
         "--robot-clock",
@@ -725,8 +739,11 @@ def checkpoint_policy(actor, stochastic: bool) -> Policy:
 
 
 def single_condition(args: argparse.Namespace, env_cfg) -> tuple[str, dict]:
-    """(name, overrides) of the one condition --physics-dt/--action-latency-ms/--noise/--imu-bias give."""
-    cond = condition_overrides(env_cfg, args.physics_dt, args.action_latency_ms, args.noise, args.imu_bias)
+    """(name, overrides) of the one condition --physics-dt/--action-latency-ms/--observation-delay-ms/--noise/
+    --imu-bias give."""
+    cond = condition_overrides(
+        env_cfg, args.physics_dt, args.action_latency_ms, args.noise, args.imu_bias, args.observation_delay_ms
+    )
     return (", ".join(f"{k}={v}" for k, v in cond.items()) or "training conditions") + _seed_note(args), cond
 
 
@@ -992,11 +1009,12 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
     if args.symmetrise and args.stochastic:
         raise UsageError("--symmetrise runs the deterministic actor; leave out --stochastic")
     if args.sim2sim and args.robot_clock:
-        raise UsageError("give --sim2sim (seven conditions) or --robot-clock (three of them), not both")
+        raise UsageError(f"give --sim2sim ({len(SIM2SIM)} conditions) or --robot-clock (three of them), not both")
     own = "--sim2sim" if args.sim2sim else "--robot-clock" if args.robot_clock else None
-    if own and (args.physics_dt or args.action_latency_ms or args.noise or args.imu_bias):
+    if own and (args.physics_dt or args.action_latency_ms or args.noise or args.imu_bias or args.observation_delay_ms):
         raise UsageError(
-            f"{own} runs its own conditions: leave out --physics-dt, --action-latency-ms, --noise, --imu-bias"
+            f"{own} runs its own conditions: leave out --physics-dt, --action-latency-ms, --observation-delay-ms, "
+            "--noise, --imu-bias"
         )
     if args.checkpoints:
         return rank(args, default_log_root)
