@@ -268,6 +268,39 @@ def test_observation_delay_of_a_whole_period_shows_the_policy_the_previous_state
     late.close()
 
 
+def test_motor_strength_scales_the_pd_torque_and_the_torque_limit():
+    """domain_rand.motor_strength_range = (0.5, 0.5): every motor's Kp, Kd and torque limit are
+    halved, so a target at the end of a joint's range gives at most half the torque, and
+    exactly half where the nominal motor saturates; off, (1, 1), keeps the nominal model; a
+    non-positive strength is refused."""
+    fixed = CPU + [f"domain_rand.{k}=false" for k in ("randomize_gains", "randomize_friction", "randomize_base_mass")]
+    fixed += ["domain_rand.randomize_com=false", "domain_rand.push_robots=false", "noise.enabled=false"]
+    fixed += ["init_state.joint_pos_noise=0.0", "init_state.base_vel_noise=0.0", "init_state.random_yaw=false"]
+    plain = registry.make_env("go2_flat", fixed, num_envs=2)
+    weak = registry.make_env("go2_flat", [*fixed, "domain_rand.motor_strength_range=[0.5, 0.5]"], num_envs=2)
+    nominal = torch.tensor(plain.model.actuator_forcerange, dtype=torch.float64)
+    limits = [e.sim.get_model_field("actuator_forcerange").double() for e in (plain, weak)]
+    torch.testing.assert_close(limits[0], nominal.expand(2, -1, -1))
+    torch.testing.assert_close(limits[1], 0.5 * nominal.expand(2, -1, -1))
+    kp = weak.sim.get_model_field("actuator_gainprm")[..., 0]
+    torch.testing.assert_close(kp.double(), 0.5 * torch.tensor(plain.model.actuator_gainprm[:, 0]).expand(2, -1))
+    torques = []
+    for e in (plain, weak):
+        e.step(torch.full((2, e.num_actions), 50.0))  # targets clamped to the far end of each range
+        # the first substep's actuator forces: from the same standing state in both envs
+        first = e.sim.substep_sensordata()[:, 0]
+        torques.append(first[:, e._sensor_columns(e._torque_sensors)].abs().float())
+    limit = nominal[:, 1].float().expand(2, -1)
+    saturated = torques[0] > limit - 1e-3
+    assert saturated.sum() >= 8  # most nominal motors hit their limit: the test compares limits
+    assert (torques[1] <= 0.5 * limit + 1e-3).all()
+    torch.testing.assert_close(torques[1][saturated], 0.5 * limit[saturated], atol=1e-3, rtol=0)
+    with pytest.raises(ValueError, match="motor_strength_range"):
+        registry.make_env("go2_flat", [*fixed, "domain_rand.motor_strength_range=[0.0, 1.0]"], num_envs=2)
+    plain.close()
+    weak.close()
+
+
 def test_set_commands_holds_them_through_timers_and_resets():
     e = registry.make_env("go2_flat", CPU + ["commands.resampling_time=0.1"], num_envs=3)
     e.set_commands([0.6, -0.2, 0.3])

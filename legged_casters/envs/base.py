@@ -146,6 +146,9 @@ class LeggedEnv(VecEnv):
                 )
         if self._obs_delay_on:
             self.sim.keep_substep_states()
+        lo, hi = self.cfg.domain_rand.motor_strength_range
+        if not 0.0 < lo <= hi:
+            raise ValueError(f"domain_rand.motor_strength_range {(lo, hi)}: need 0 < low <= high")
         cmd_cfg = self.cfg.commands
         if cmd_cfg.curriculum_mode == "edge" and cmd_cfg.curriculum_settle_s >= cmd_cfg.resampling_time:
             raise ValueError(
@@ -717,14 +720,22 @@ class LeggedEnv(VecEnv):
             ipos = torch.tensor(m.body_ipos, dtype=torch.float32, device=dev).expand(n, -1, -1).clone()
             ipos[:, self.trunk_id] += _uniform(*dr.com_offset_range, (n, 3), dev)
             self.sim.set_model_field("body_ipos", env_ids, ipos)
-        if dr.randomize_gains:
+        strength_on = tuple(dr.motor_strength_range) != (1.0, 1.0)
+        if dr.randomize_gains or strength_on:
             gain = torch.tensor(m.actuator_gainprm, dtype=torch.float32, device=dev).expand(n, -1, -1).clone()
             bias = torch.tensor(m.actuator_biasprm, dtype=torch.float32, device=dev).expand(n, -1, -1).clone()
-            kp_scale = _uniform(*dr.kp_scale_range, (n, m.nu), dev)
-            kd_scale = _uniform(*dr.kd_scale_range, (n, m.nu), dev)
-            # A velocity servo's gain and damping are the same kd (tau = kd (dq* - dq)):
-            # one scale for both, or a mismatch would bias its speed.
-            kp_scale = torch.where(self.position_joints, kp_scale, kd_scale)
+            kp_scale = kd_scale = torch.ones(n, m.nu, device=dev)
+            if dr.randomize_gains:
+                kp_scale = _uniform(*dr.kp_scale_range, (n, m.nu), dev)
+                kd_scale = _uniform(*dr.kd_scale_range, (n, m.nu), dev)
+                # A velocity servo's gain and damping are the same kd (tau = kd (dq* - dq)):
+                # one scale for both, or a mismatch would bias its speed.
+                kp_scale = torch.where(self.position_joints, kp_scale, kd_scale)
+            if strength_on:
+                strength = _uniform(*dr.motor_strength_range, (n, m.nu), dev)
+                kp_scale, kd_scale = kp_scale * strength, kd_scale * strength
+                limit = torch.tensor(m.actuator_forcerange, dtype=torch.float32, device=dev).expand(n, -1, -1)
+                self.sim.set_model_field("actuator_forcerange", env_ids, limit * strength.unsqueeze(-1))
             gain[:, :, 0] *= kp_scale
             bias[:, :, 1] *= kp_scale
             bias[:, :, 2] *= kd_scale

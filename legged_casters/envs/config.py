@@ -125,6 +125,11 @@ class DomainRandCfg:
     randomize_gains: bool = True
     kp_scale_range: tuple[float, float] = (0.9, 1.1)
     kd_scale_range: tuple[float, float] = (0.9, 1.1)
+    motor_strength_range: tuple[float, float] = (1.0, 1.0)
+    """Per env and motor, drawn at reset: a factor on the actuator's whole output, its PD
+    torque and its torque limit (a motor weaker or stronger than its datasheet, or a
+    battery's sag). Multiplies the Kp/Kd scales above where both are on. (1, 1): off, no
+    draw."""
     joint_damping: dict[str, list[float]] = field(default_factory=dict)
     """{joint-name glob: [low, high]}: damping (N m s/rad) of the matching joints."""
     joint_frictionloss_scale: dict[str, list[float]] = field(default_factory=dict)

@@ -45,6 +45,7 @@ RANDOMIZABLE_FIELDS: tuple[str, ...] = (
     "dof_frictionloss",
     "actuator_gainprm",
     "actuator_biasprm",
+    "actuator_forcerange",
 )
 """MjModel fields that can be set per env."""
 

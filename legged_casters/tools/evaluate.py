@@ -179,6 +179,7 @@ EVAL_SETTINGS = {
     "domain_rand.randomize_base_mass": False,
     "domain_rand.randomize_com": False,
     "domain_rand.randomize_gains": False,
+    "domain_rand.motor_strength_range": (1.0, 1.0),
     "domain_rand.joint_damping": {},
     "domain_rand.joint_frictionloss_scale": {},
     "domain_rand.action_latency_range": (0.0, 0.0),
