@@ -15,6 +15,10 @@ from legged_casters.envs.go2_flat import Go2FlatCfg
 from legged_casters.robot import go2
 
 CPU = ["sim.backend=cpu"]
+FIXED = CPU + [f"domain_rand.{k}=false" for k in ("randomize_gains", "randomize_friction", "randomize_base_mass")]
+FIXED += ["domain_rand.randomize_com=false", "domain_rand.push_robots=false", "noise.enabled=false"]
+FIXED += ["init_state.joint_pos_noise=0.0", "init_state.base_vel_noise=0.0", "init_state.random_yaw=false"]
+"""No randomisation, pushes, noise or random start: two envs differ only where a test makes them."""
 
 
 @pytest.fixture(scope="module")
@@ -232,13 +236,10 @@ def test_observation_delay_of_a_whole_period_shows_the_policy_the_previous_state
     earlier, while its actions term, the critic and the env's own state are the present; the
     first observation after a reset has no delay. A delay beyond the control period is
     refused."""
-    fixed = CPU + [f"domain_rand.{k}=false" for k in ("randomize_gains", "randomize_friction", "randomize_base_mass")]
-    fixed += ["domain_rand.randomize_com=false", "domain_rand.push_robots=false", "noise.enabled=false"]
-    fixed += ["init_state.joint_pos_noise=0.0", "init_state.base_vel_noise=0.0", "init_state.random_yaw=false"]
-    plain = registry.make_env("go2_flat", fixed, num_envs=2)
+    plain = registry.make_env("go2_flat", FIXED, num_envs=2)
     period = plain.dt
     late = registry.make_env(
-        "go2_flat", [*fixed, f"domain_rand.observation_delay_range=[{period}, {period}]"], num_envs=2
+        "go2_flat", [*FIXED, f"domain_rand.observation_delay_range=[{period}, {period}]"], num_envs=2
     )
     assert (late.obs_delay_steps == late.sim.decimation).all() and (plain.obs_delay_steps == 0).all()
     cols = plain.policy_obs_columns()
@@ -263,7 +264,7 @@ def test_observation_delay_of_a_whole_period_shows_the_policy_the_previous_state
         shown.append(plain_obs["policy"].clone())
     assert not torch.allclose(shown[-1], shown[-2])  # the robot moved: the test compares something
     with pytest.raises(ValueError, match="control period"):
-        registry.make_env("go2_flat", [*fixed, f"domain_rand.observation_delay_range=[0, {2 * period}]"], num_envs=2)
+        registry.make_env("go2_flat", [*FIXED, f"domain_rand.observation_delay_range=[0, {2 * period}]"], num_envs=2)
     plain.close()
     late.close()
 
@@ -273,11 +274,8 @@ def test_motor_strength_scales_the_pd_torque_and_the_torque_limit():
     halved, so a target at the end of a joint's range gives at most half the torque, and
     exactly half where the nominal motor saturates; off, (1, 1), keeps the nominal model; a
     non-positive strength is refused."""
-    fixed = CPU + [f"domain_rand.{k}=false" for k in ("randomize_gains", "randomize_friction", "randomize_base_mass")]
-    fixed += ["domain_rand.randomize_com=false", "domain_rand.push_robots=false", "noise.enabled=false"]
-    fixed += ["init_state.joint_pos_noise=0.0", "init_state.base_vel_noise=0.0", "init_state.random_yaw=false"]
-    plain = registry.make_env("go2_flat", fixed, num_envs=2)
-    weak = registry.make_env("go2_flat", [*fixed, "domain_rand.motor_strength_range=[0.5, 0.5]"], num_envs=2)
+    plain = registry.make_env("go2_flat", FIXED, num_envs=2)
+    weak = registry.make_env("go2_flat", [*FIXED, "domain_rand.motor_strength_range=[0.5, 0.5]"], num_envs=2)
     nominal = torch.tensor(plain.model.actuator_forcerange, dtype=torch.float64)
     limits = [e.sim.get_model_field("actuator_forcerange").double() for e in (plain, weak)]
     torch.testing.assert_close(limits[0], nominal.expand(2, -1, -1))
@@ -296,7 +294,7 @@ def test_motor_strength_scales_the_pd_torque_and_the_torque_limit():
     assert (torques[1] <= 0.5 * limit + 1e-3).all()
     torch.testing.assert_close(torques[1][saturated], 0.5 * limit[saturated], atol=1e-3, rtol=0)
     with pytest.raises(ValueError, match="motor_strength_range"):
-        registry.make_env("go2_flat", [*fixed, "domain_rand.motor_strength_range=[0.0, 1.0]"], num_envs=2)
+        registry.make_env("go2_flat", [*FIXED, "domain_rand.motor_strength_range=[0.0, 1.0]"], num_envs=2)
     plain.close()
     weak.close()
 
@@ -314,12 +312,9 @@ def test_action_latency_of_a_whole_period_applies_each_action_one_step_late():
     """domain_rand.action_latency_range = (dt, dt): the actuators keep the previous step's
     targets for the whole control period, so actions (a1, a2) move the robot exactly as
     (0, a1) do without latency; a reset starts from the nominal targets again."""
-    fixed = CPU + [f"domain_rand.{k}=false" for k in ("randomize_gains", "randomize_friction", "randomize_base_mass")]
-    fixed += ["domain_rand.randomize_com=false", "domain_rand.push_robots=false", "noise.enabled=false"]
-    fixed += ["init_state.joint_pos_noise=0.0", "init_state.base_vel_noise=0.0", "init_state.random_yaw=false"]
-    plain = registry.make_env("go2_flat", fixed, num_envs=2)
+    plain = registry.make_env("go2_flat", FIXED, num_envs=2)
     period = plain.dt
-    late = registry.make_env("go2_flat", [*fixed, f"domain_rand.action_latency_range=[{period}, {period}]"], num_envs=2)
+    late = registry.make_env("go2_flat", [*FIXED, f"domain_rand.action_latency_range=[{period}, {period}]"], num_envs=2)
     assert (late.latency_steps == late.sim.decimation).all() and (plain.latency_steps == 0).all()
     g = torch.Generator().manual_seed(0)
     a1, a2 = (0.5 * torch.randn(2, plain.num_actions, generator=g) for _ in range(2))
@@ -333,6 +328,6 @@ def test_action_latency_of_a_whole_period_applies_each_action_one_step_late():
     late.reset_idx(torch.arange(2))
     torch.testing.assert_close(late.held_targets, late.action_targets(torch.zeros_like(a1)))
     with pytest.raises(ValueError, match="control period"):
-        registry.make_env("go2_flat", [*fixed, f"domain_rand.action_latency_range=[0, {2 * period}]"], num_envs=2)
+        registry.make_env("go2_flat", [*FIXED, f"domain_rand.action_latency_range=[0, {2 * period}]"], num_envs=2)
     plain.close()
     late.close()
