@@ -363,12 +363,11 @@ class LeggedEnv(VecEnv):
     def _observed_body_state(self):
         """BODY_STATE as the policy's sensors saw it, obs_delay_steps substeps before now
         (observation delay; none in an env's first step after a reset), restored on exit."""
-        steps = torch.where(self.episode_length_buf > 0, self.obs_delay_steps, 0) if self._obs_delay_on else None
-        if steps is None or not bool((steps > 0).any()):
+        if not self._obs_delay_on:
             yield
             return
         present = {name: getattr(self, name) for name in self.BODY_STATE}
-        qpos, qvel = self.sim.delayed_state(steps)
+        qpos, qvel = self.sim.delayed_state(torch.where(self.episode_length_buf > 0, self.obs_delay_steps, 0))
         self._set_body_state(qpos.float(), qvel.float())
         try:
             yield

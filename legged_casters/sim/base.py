@@ -163,9 +163,10 @@ class SimBackend(abc.ABC):
         steps = torch.as_tensor(steps).reshape(-1).long()
         if steps.numel() != self.num_envs:
             raise ValueError(f"steps must have {self.num_envs} entries, got {steps.numel()}")
-        if bool((steps < 0).any()) or bool((steps > self.decimation).any()):
+        lo, hi = (int(v) for v in torch.aminmax(steps))  # one read of the device for both
+        if lo < 0 or hi > self.decimation:
             raise ValueError(f"steps must lie in [0, {self.decimation}] (the substeps of one step)")
-        if bool((steps > 0).any()) and not self._keeping_substeps:
+        if hi > 0 and not self._keeping_substeps:
             raise RuntimeError("delayed_state needs keep_substep_states() before the step it looks into")
         return steps
 
