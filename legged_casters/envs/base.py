@@ -696,17 +696,20 @@ class LeggedEnv(VecEnv):
                 _uniform(-1.0, 1.0, (len(env_ids), len(self.bias_vec)), self.device) * self.bias_vec
             )
 
+    def _draw_substeps(self, seconds: tuple[float, float], n: int) -> torch.Tensor:
+        """n delays drawn uniformly in `seconds`, as whole physics substeps of one control step."""
+        steps = torch.round(_uniform(*seconds, (n,), self.device) / self.sim.physics_dt).long()
+        return steps.clamp(0, self.sim.decimation)
+
     def randomize(self, env_ids: torch.Tensor) -> None:
         dr, m, dev, n = self.cfg.domain_rand, self.model, self.device, len(env_ids)
         if hasattr(self, "obs_bias"):  # not in __init__'s first reset: _init_observation_layout draws it
             self._draw_obs_bias(env_ids)
         if self._latency_on:
-            steps = torch.round(_uniform(*dr.action_latency_range, (n,), dev) / self.sim.physics_dt).long()
-            self.latency_steps[env_ids] = steps.clamp(0, self.sim.decimation)
+            self.latency_steps[env_ids] = self._draw_substeps(dr.action_latency_range, n)
             self.held_targets[env_ids] = self.action_targets(torch.zeros(n, self.num_actions, device=dev))
         if self._obs_delay_on:
-            steps = torch.round(_uniform(*dr.observation_delay_range, (n,), dev) / self.sim.physics_dt).long()
-            self.obs_delay_steps[env_ids] = steps.clamp(0, self.sim.decimation)
+            self.obs_delay_steps[env_ids] = self._draw_substeps(dr.observation_delay_range, n)
         if dr.randomize_friction:
             friction = torch.tensor(m.geom_friction, dtype=torch.float32, device=dev).expand(n, -1, -1).clone()
             friction[:, :, 0] = _uniform(*dr.friction_range, (n, 1), dev)

@@ -258,14 +258,14 @@ def condition_overrides(
                 "steps"
             )
         out.update({"sim.timestep": physics_dt, "sim.decimation": decimation})
-    if latency_ms:
-        if latency_ms < 0 or (control_dt is not None and latency_ms / 1e3 > control_dt + 1e-9):
-            raise UsageError(f"--action-latency-ms {latency_ms:g}: must be between 0 and the control period")
-        out["domain_rand.action_latency_range"] = (latency_ms / 1e3, latency_ms / 1e3)
-    if obs_delay_ms:
-        if obs_delay_ms < 0 or (control_dt is not None and obs_delay_ms / 1e3 > control_dt + 1e-9):
-            raise UsageError(f"--observation-delay-ms {obs_delay_ms:g}: must be between 0 and the control period")
-        out["domain_rand.observation_delay_range"] = (obs_delay_ms / 1e3, obs_delay_ms / 1e3)
+    for flag, key, ms in (
+        ("--action-latency-ms", "domain_rand.action_latency_range", latency_ms),
+        ("--observation-delay-ms", "domain_rand.observation_delay_range", obs_delay_ms),
+    ):
+        if ms:
+            if ms < 0 or (control_dt is not None and ms / 1e3 > control_dt + 1e-9):
+                raise UsageError(f"{flag} {ms:g}: must be between 0 and the control period")
+            out[key] = (ms / 1e3, ms / 1e3)
     if noise:
         out["noise.enabled"] = True
     if imu_bias:
