@@ -169,13 +169,15 @@ class WarpBackend(SimBackend):
 
     def delayed_state(self, steps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         k = self._check_delay_steps(steps).to(self.device)
-        qpos, qvel = self._qpos.clone(), self._qvel.clone()
-        lagged = torch.nonzero(k > 0).flatten()
-        if len(lagged):
-            slot = self.decimation - k[lagged]  # 0: the step's start, s: after substep s
-            qpos[lagged] = wp.to_torch(self._record[0])[lagged, slot]
-            qvel[lagged] = wp.to_torch(self._record[1])[lagged, slot]
-        return qpos, qvel
+        if self._record is None:  # nothing kept yet: every lag is 0 (checked above)
+            return self._qpos.clone(), self._qvel.clone()
+        # A gather over every env and a select, no host read: slot 0 is the step's start, s
+        # the state after substep s; an env with lag 0 (or reset since) takes its present.
+        rows = torch.arange(self.num_envs, device=self.device)
+        slot = (self.decimation - k).clamp(max=self.decimation - 1)
+        lagged = (k > 0).unsqueeze(1)
+        qpos = torch.where(lagged, wp.to_torch(self._record[0])[rows, slot], self._qpos)
+        return qpos, torch.where(lagged, wp.to_torch(self._record[1])[rows, slot], self._qvel)
 
     def _forward(self) -> None:
         mjw.forward(self.wm, self.wd)
