@@ -308,6 +308,19 @@ def test_set_commands_holds_them_through_timers_and_resets():
     assert torch.allclose(e.commands, torch.tensor([0.6, -0.2, 0.3]).expand(3, 3))
 
 
+def test_latency_and_delay_draws_give_every_whole_substep_the_same_weight():
+    """A 0-20 ms range at 5 ms physics draws 0, 1, 2, 3 and 4 substeps equally often (a
+    rounded uniform draw in seconds gave the ends, 0 and 20 ms, half the weight of the
+    others); a range's ends round to the nearest substep and never pass one control step."""
+    env = registry.make_env("go2_flat", [*FIXED, "sim.timestep=0.005", "sim.decimation=4"], num_envs=2)
+    assert env.sim.physics_dt == 0.005 and env.sim.decimation == 4
+    torch.manual_seed(0)
+    share = torch.bincount(env._draw_substeps((0.0, 0.02), 50_000), minlength=5).float() / 50_000
+    assert torch.allclose(share, torch.full((5,), 0.2), atol=0.01), share
+    assert set(env._draw_substeps((0.006, 0.014), 2_000).tolist()) == {1, 2, 3}
+    assert set(env._draw_substeps((0.018, 0.02), 100).tolist()) == {4}
+
+
 def test_action_latency_of_a_whole_period_applies_each_action_one_step_late():
     """domain_rand.action_latency_range = (dt, dt): the actuators keep the previous step's
     targets for the whole control period, so actions (a1, a2) move the robot exactly as

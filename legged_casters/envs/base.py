@@ -697,9 +697,12 @@ class LeggedEnv(VecEnv):
             )
 
     def _draw_substeps(self, seconds: tuple[float, float], n: int) -> torch.Tensor:
-        """n delays drawn uniformly in `seconds`, as whole physics substeps of one control step."""
-        steps = torch.round(_uniform(*seconds, (n,), self.device) / self.sim.physics_dt).long()
-        return steps.clamp(0, self.sim.decimation)
+        """n delays in whole physics substeps (at most one control step), every count between
+        the range's ends (rounded to substeps) equally likely. Rounding a uniform draw in
+        seconds instead gave the two ends half the weight of the counts between them: with
+        0-20 ms at 5 ms physics, 0 and 20 ms (what evaluate.py checks) were the rarest."""
+        lo, hi = (min(math.floor(t / self.sim.physics_dt + 0.5), self.sim.decimation) for t in seconds)
+        return torch.randint(lo, hi + 1, (n,), device=self.device)
 
     def randomize(self, env_ids: torch.Tensor) -> None:
         dr, m, dev, n = self.cfg.domain_rand, self.model, self.device, len(env_ids)

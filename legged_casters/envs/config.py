@@ -135,14 +135,16 @@ class DomainRandCfg:
     joint_frictionloss_scale: dict[str, list[float]] = field(default_factory=dict)
     """{joint-name glob: [low, high]}: scale of the matching joints' friction loss."""
     action_latency_range: tuple[float, float] = (0.0, 0.0)
-    """Seconds from the policy's action to the actuators, per env, drawn at reset and
-    rounded to whole physics steps (at most one control period): for that long at the
+    """Seconds from the policy's action to the actuators, per env, drawn at reset as a
+    whole number of physics steps (at most one control period), every count between the
+    range's ends (rounded to physics steps) equally likely: for that long at the
     start of each control step the actuators keep the previous step's targets, as a
     robot's do while the command is computed and sent. Evaluated with evaluate.py
     --action-latency-ms."""
     observation_delay_range: tuple[float, float] = (0.0, 0.0)
     """Seconds by which the policy's observation lags the simulation, per env, drawn at
-    reset and rounded to whole physics steps (at most one control period): its state terms
+    reset as a whole number of physics steps (at most one control period), every count
+    between the range's ends (rounded) equally likely: its state terms
     (ang_vel, projected_gravity, joint_pos, joint_vel, and any other term read from the
     trunk and joint state) come from the state that long before the end of the step, as a
     robot's sensors are read, filtered and sent before its policy runs. The history
