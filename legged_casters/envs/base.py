@@ -700,8 +700,9 @@ class LeggedEnv(VecEnv):
         """n delays in whole physics substeps (at most one control step), every count between
         the range's ends (rounded to substeps) equally likely. Rounding a uniform draw in
         seconds instead gave the two ends half the weight of the counts between them: with
-        0-20 ms at 5 ms physics, 0 and 20 ms (what evaluate.py checks) were the rarest."""
-        lo, hi = (min(math.floor(t / self.sim.physics_dt + 0.5), self.sim.decimation) for t in seconds)
+        0-20 ms at 5 ms physics, 0 and 20 ms (what evaluate.py checks) were the rarest.
+        __init__ refused ranges past the control period, so `hi` is at most `decimation`."""
+        lo, hi = (math.floor(t / self.sim.physics_dt + 0.5) for t in seconds)
         return torch.randint(lo, hi + 1, (n,), device=self.device)
 
     def randomize(self, env_ids: torch.Tensor) -> None:
