@@ -365,9 +365,9 @@ def test_symmetry_exact_actor_is_mirror_equivariant_trained_and_exported(tmp_pat
 
 
 def test_shipped_symmetric_policy_mirrors_its_action_and_says_so():
-    """resources/policies/caster_omni_sym and caster_omni_backlaw (symmetry.mode=exact): the shipped TorchScript and
-    ONNX files give the mirrored observation exactly the mirrored action, and policy.yaml says
-    the network is symmetric; caster_omni_track (trained without it) does neither."""
+    """resources/policies/caster_omni_sym, caster_omni_backlaw and caster_omni_smooth (symmetry.mode=exact): the
+    shipped TorchScript and ONNX files give the mirrored observation exactly the mirrored action, and policy.yaml
+    says the network is symmetric; caster_omni_track (trained without it) does neither."""
     import onnxruntime as ort
     import yaml
 
@@ -375,7 +375,8 @@ def test_shipped_symmetric_policy_mirrors_its_action_and_says_so():
     from legged_casters.tools import evaluate as ev
 
     torch.manual_seed(0)
-    for name, symmetric in (("caster_omni_sym", True), ("caster_omni_backlaw", True), ("caster_omni_track", False)):
+    shipped = ("caster_omni_sym", True), ("caster_omni_backlaw", True), ("caster_omni_smooth", True)
+    for name, symmetric in (*shipped, ("caster_omni_track", False)):
         folder = common.SHIPPED_POLICIES / name
         meta = yaml.safe_load((folder / "policy.yaml").read_text())
         assert ("symmetry" in meta) == symmetric
