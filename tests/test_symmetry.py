@@ -375,8 +375,13 @@ def test_shipped_symmetric_policy_mirrors_its_action_and_says_so():
     from legged_casters.tools import evaluate as ev
 
     torch.manual_seed(0)
-    exact = ("caster_omni_sym", True), ("caster_omni_backlaw", True), ("caster_omni_smooth", True)
-    for name, symmetric in (*exact, ("caster_omni_track", False)):
+    cases = (
+        ("caster_omni_sym", True),
+        ("caster_omni_backlaw", True),
+        ("caster_omni_smooth", True),
+        ("caster_omni_track", False),
+    )
+    for name, symmetric in cases:
         folder = common.SHIPPED_POLICIES / name
         meta = yaml.safe_load((folder / "policy.yaml").read_text())
         assert ("symmetry" in meta) == symmetric
