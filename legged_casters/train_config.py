@@ -101,6 +101,11 @@ class TrainCfg:
     num_steps_per_env: int = field(default=24, metadata={"min": 1})
     save_interval: int = field(default=50, metadata={"min": 1})
     seed: int = 1
+    select_last: int = field(default=0, metadata={"min": 0})
+    """After training, rank this many of the newest saved checkpoints by evaluate.py's full
+    fixed evaluation (fewest falls, then most checks passed, then the newest) and record the
+    first in the run's selected.yaml, which play, evaluate and export then load by default;
+    0: none (they load the newest)."""
     policy: PolicyCfg = field(default_factory=PolicyCfg)
     algorithm: PPOCfg = field(default_factory=PPOCfg)
     estimator: EstimatorCfg = field(default_factory=EstimatorCfg)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import math
 import os
 import re
 import shutil
@@ -826,3 +827,60 @@ def test_is_training_checkpoint_tells_exports_apart_without_warning(tmp_path):
     assert common.is_training_checkpoint(damaged) is False
     with pytest.raises(common.CheckpointError, match="exported TorchScript policy"):
         common.load_checkpoint(exported)
+
+
+def test_brake_measures_time_and_path_to_rest_and_to_the_zero_crossing():
+    from legged_casters.tools import evaluate
+
+    dt = 0.02
+    k_cmd = int(round(evaluate.BRAKE_AT_S / dt))
+    steps = k_cmd + 300
+    # 1.5 m/s until the stop, then a linear brake to zero over 1.0 s, a wobble back to 0.15
+    # at 1.5 s (not at rest for good yet), then still.
+    vx = torch.full((steps,), 1.5)
+    t = torch.arange(300) * dt
+    vx[k_cmd:] = (1.5 * (1.0 - t / 1.0)).clamp(min=0.0)
+    vx[k_cmd + 75] = 0.15
+    xy = torch.zeros(steps, 2)
+    xy[:, 0] = torch.cumsum(vx, 0) * dt
+    stop = evaluate._brake("stop", 1.5, 0.0)
+    out = evaluate._brake_measures(stop, vx, xy, steps, dt)
+    assert out["v_at_cmd"] == pytest.approx(1.5)
+    assert out["rest_s"] == pytest.approx(76 * dt)  # the wobble at step 75 is the last |vx| >= 0.1
+    assert out["rest_m"] == pytest.approx(float(xy[k_cmd + 75, 0] - xy[k_cmd - 1, 0]), abs=1e-5)
+    never = evaluate._brake_measures(stop, torch.full((steps,), 0.5), xy, steps, dt)
+    assert never["rest_s"] == math.inf
+    reverse = evaluate._brake("reverse", 1.5, -0.5)
+    out = evaluate._brake_measures(reverse, vx - 0.5, xy, steps, dt)
+    assert out["cross_s"] == pytest.approx(float((vx[k_cmd:] - 0.5 < 0).nonzero()[0] + 1) * dt)
+    checks = evaluate.verdict([
+        evaluate.ScenarioResult("stop from +1.5", "brake", (0, 0, 0), extra={"rest_s": 1.9, "rest_m": 1.6}),
+        evaluate.ScenarioResult("hold flat", "hold", (0, 0, 0), extra={"max_drift_m": 0.05, "max_turn_deg": 6.0}),
+        evaluate.ScenarioResult("hold 5deg", "hold", (0, 0, 0), falls=1, slope_deg=5.0,
+                                extra={"max_drift_m": 0.0, "max_turn_deg": 0.0}),
+    ])  # fmt: skip
+    assert [ok for _, ok, _ in checks] == [False, False, False]  # 1.6 m > 1.5 m; 6 deg > 5 deg; a fall on 5 deg
+
+
+def test_a_selected_checkpoint_is_what_a_run_loads_by_default(tmp_path):
+    from legged_casters.tools import evaluate
+
+    for it in (50, 100, 150):
+        (tmp_path / f"model_{it}.pt").write_bytes(b"x")
+    assert common.find_checkpoint(tmp_path, None).name == "model_150.pt"
+    with pytest.raises(common.UsageError, match="selected.yaml"):
+        common.find_checkpoint(tmp_path, "selected")
+    rows = [{"file": f"model_{it}.pt", "iteration": it, "passed": p, "checks": 20, "falls": f, "failed": []}
+            for it, p, f in ((50, 12, 0), (100, 15, 1), (150, 11, 0))]  # fmt: skip
+    top = min(rows, key=evaluate._rank_key)
+    assert top["iteration"] == 50  # no fall first, then the most checks
+    evaluate.write_selection(tmp_path, top, rows, "full", "training conditions")
+    record = yaml.safe_load((tmp_path / common.SELECTED_FILE).read_text())
+    assert record["file"] == "model_50.pt" and [r["iteration"] for r in record["ranked"]] == [50, 150, 100]
+    assert common.find_checkpoint(tmp_path, None).name == "model_50.pt"
+    assert common.find_checkpoint(tmp_path, "selected").name == "model_50.pt"
+    assert common.find_checkpoint(tmp_path, "latest").name == "model_150.pt"
+    assert common.find_checkpoint(tmp_path, None, newest=True).name == "model_150.pt"  # what a resume continues
+    (tmp_path / "model_50.pt").unlink()
+    with pytest.raises(common.UsageError, match="names no checkpoint"):
+        common.find_checkpoint(tmp_path, None)

@@ -344,3 +344,76 @@ def test_action_latency_of_a_whole_period_applies_each_action_one_step_late():
         registry.make_env("go2_flat", [*FIXED, f"domain_rand.action_latency_range=[0, {2 * period}]"], num_envs=2)
     plain.close()
     late.close()
+
+
+def test_ground_slope_tilts_gravity_and_the_imu_sees_it():
+    env = registry.make_env("caster_omni", FIXED, num_envs=3)
+    try:
+        env.set_commands([0.0, 0.0, 0.0])
+        env.set_ground_slope(torch.tensor([0.0, 4.0, 4.0]), torch.tensor([0.0, 0.0, math.pi / 2]))
+        env.reset_idx(torch.arange(3))
+        assert torch.allclose(env.ground_slope_deg(), torch.tensor([0.0, 4.0, 4.0]), atol=1e-3)
+        s = math.sin(math.radians(4.0))
+        # The robot faces +x: downhill ahead shows as gravity pulling forward, downhill to
+        # the left as gravity pulling left; the ground's normal is the trunk's z either way.
+        assert torch.allclose(env.projected_gravity[1, :2], torch.tensor([s, 0.0]), atol=2e-3)
+        assert torch.allclose(env.projected_gravity[2, :2], torch.tensor([0.0, s]), atol=2e-3)
+        assert torch.allclose(env.ground_gravity[:, :2], torch.zeros(3, 2), atol=2e-3)
+        start = env.base_pos[:, :2].clone()
+        for _ in range(50):  # 1 s, the nominal pose
+            env.step(torch.zeros(3, env.num_actions))
+        moved = env.base_pos[:, :2] - start
+        assert moved[0].abs().max() < 0.02
+        assert moved[1, 0] > 0.1
+        assert env.ground_slope_deg()[1] > 3.9  # stays over resets
+        env.reset_idx(torch.tensor([1]))
+        assert abs(float(env.ground_slope_deg()[1]) - 4.0) < 1e-3
+    finally:
+        env.close()
+
+
+def test_slope_draw_covers_the_range_in_the_configured_share_of_episodes():
+    env = registry.make_env(
+        "caster_omni", FIXED + ["terrain.slope_deg=6.0", "terrain.slope_fraction=0.5"], num_envs=200
+    )
+    try:
+        deg = env.ground_slope_deg()
+        tilted = deg > 1e-3
+        assert 0.35 < float(tilted.float().mean()) < 0.65
+        assert float(deg.max()) <= 6.0 + 1e-3 and float(deg[tilted].max()) > 4.0
+        downhill = torch.atan2(env.gravity_dir[tilted, 1], env.gravity_dir[tilted, 0])
+        assert float(downhill.min()) < -2.0 and float(downhill.max()) > 2.0  # every direction
+    finally:
+        env.close()
+
+
+def test_reversal_commands_flip_the_planar_command_before_them(env):
+    cfg = env.cfg.commands
+    saved = (cfg.reverse_fraction, cfg.standing_fraction, cfg.single_axis_fraction)
+    try:
+        cfg.reverse_fraction, cfg.standing_fraction, cfg.single_axis_fraction = 1.0, 1.0, 0.0
+        env.commands[:] = torch.tensor([1.2, -0.3, 0.5])
+        env.resample_commands(torch.arange(env.num_envs))
+        # a reversal wins over a stop drawn for the same robot
+        assert torch.allclose(env.commands, torch.tensor([-1.2, 0.3, 0.5]).expand(env.num_envs, 3))
+    finally:
+        cfg.reverse_fraction, cfg.standing_fraction, cfg.single_axis_fraction = saved
+
+
+def test_stand_still_waits_for_the_trunk_to_slow_down(env):
+    env.set_commands([0.0, 0.0, 0.0])
+    env.joint_pos = (env.default_joint_pos + 0.1).expand(env.num_envs, -1).clone()
+    env.base_lin_vel = torch.zeros(env.num_envs, 3)
+    env.base_lin_vel[0, 0] = 1.0
+    saved = env.cfg.rewards.stand_still_max_speed
+    try:
+        env.cfg.rewards.stand_still_max_speed = None
+        everywhere = env._reward_stand_still()
+        assert (everywhere > 0).all()
+        env.cfg.rewards.stand_still_max_speed = 0.2
+        gated = env._reward_stand_still()
+        assert gated[0] == 0 and torch.equal(gated[1:], everywhere[1:])
+    finally:
+        env.cfg.rewards.stand_still_max_speed = saved
+        env.external_commands = False
+        env._refresh_state()

@@ -206,6 +206,29 @@ def test_push_acts_for_one_step(model, kind):
 
 
 @pytest.mark.parametrize("kind", BACKENDS)
+def test_gravity_per_env_tilts_only_that_env(model, kind):
+    # The same stand in three worlds: gravity straight down, and tilted 5 deg towards +x and
+    # towards -y. The tilted worlds roll downhill, the straight one stays.
+    n = 3
+    backend = make_backend(kind, model, n, DECIMATION, "cpu")
+    backend.reset(None, torch.from_numpy(model.key_qpos[0].copy()).repeat(n, 1), torch.zeros(n, model.nv))
+    g, a = 9.81, np.radians(5.0)
+    tilted = [[g * np.sin(a), 0.0, -g * np.cos(a)], [0.0, -g * np.sin(a), -g * np.cos(a)]]
+    backend.set_gravity([1, 2], torch.tensor(tilted))
+    with pytest.raises(ValueError, match="gravity"):
+        backend.set_gravity([0], torch.zeros(2, 3))
+    ctrl = torch.tensor(go2.default_joint_positions()).repeat(n, 1).to(backend.ctrl.dtype)
+    start = backend.qpos[:, 0:2].double().clone()
+    for _ in range(25):  # 0.5 s
+        backend.step(ctrl)
+    moved = backend.qpos[:, 0:2].double() - start
+    assert moved[0].abs().max() < 0.01
+    assert moved[1, 0] > 0.05 and abs(moved[1, 1]) < 0.02
+    assert moved[2, 1] < -0.005  # sideways the casters roll less freely, but downhill
+    backend.close()
+
+
+@pytest.mark.parametrize("kind", BACKENDS)
 def test_action_latency_holds_the_previous_targets(model, kind):
     """step(ctrl, held, held_steps): env i applies held[i] for its first held_steps[i]
     substeps, then ctrl[i]. 0 substeps is a plain step with ctrl, `decimation` substeps a

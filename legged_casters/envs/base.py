@@ -130,6 +130,11 @@ class LeggedEnv(VecEnv):
 
     def _init_buffers(self) -> None:
         n, dev = self.num_envs, self.device
+        self.gravity_dir = torch.tensor([0.0, 0.0, -1.0], device=dev).repeat(n, 1)
+        """Unit gravity direction per env in the world (= ground) frame: -z on flat ground,
+        tilted on a slope (terrain.slope_deg, set_ground_slope)."""
+        self.external_slope = False
+        """True: the ground slope comes from `set_ground_slope` (evaluation), never drawn."""
         self.actions = torch.zeros(n, self.num_actions, device=dev)
         self.last_actions = torch.zeros_like(self.actions)
         self.latency_steps = torch.zeros(n, dtype=torch.long, device=dev)
@@ -264,6 +269,7 @@ class LeggedEnv(VecEnv):
             "commands": ([0, 1, 2], [1.0, -1.0, -1.0]),  # vx, vy, wz
             "ang_vel": ([0, 1, 2], [-1.0, 1.0, -1.0]),  # an axial vector: roll and yaw rates flip
             "projected_gravity": ([0, 1, 2], [1.0, -1.0, 1.0]),
+            "ground_gravity": ([0, 1, 2], [1.0, -1.0, 1.0]),
             "base_lin_vel": ([0, 1, 2], [1.0, -1.0, 1.0]),
             "lin_vel": None,  # world frame
             "base_height": ([0], [1.0]),
@@ -337,7 +343,7 @@ class LeggedEnv(VecEnv):
 
     BODY_STATE: tuple[str, ...] = (
         "base_pos", "base_height", "base_quat", "base_lin_vel_world", "base_lin_vel", "base_ang_vel",
-        "projected_gravity", "joint_pos", "joint_vel",
+        "projected_gravity", "ground_gravity", "joint_pos", "joint_vel",
     )  # fmt: skip
     """The attributes _set_body_state derives from qpos and qvel (what an observation delay delays)."""
 
@@ -354,8 +360,12 @@ class LeggedEnv(VecEnv):
         # A free joint's angular velocity is in the trunk frame: for the rigid trunk it is
         # what the IMU gyro measures (the imu site is not rotated), the deploy bridge's input.
         self.base_ang_vel = qvel[:, 3:6]
-        gravity = torch.tensor([0.0, 0.0, -1.0], device=self.device).expand(self.num_envs, 3)
-        self.projected_gravity = quat_rotate_inverse(self.base_quat, gravity)
+        # What the IMU measures: gravity in the trunk frame (tilted ground included) ...
+        self.projected_gravity = quat_rotate_inverse(self.base_quat, self.gravity_dir)
+        # ... and the ground's downward normal in the trunk frame: the trunk's tilt from the
+        # ground (rewards and terminations). The two differ only on a slope.
+        down = torch.tensor([0.0, 0.0, -1.0], device=self.device).expand(self.num_envs, 3)
+        self.ground_gravity = quat_rotate_inverse(self.base_quat, down)
         self.joint_pos = qpos[:, self.joint_qadr]
         self.joint_vel = qvel[:, self.joint_dadr]
 
@@ -453,6 +463,7 @@ class LeggedEnv(VecEnv):
 
     def resample_commands(self, env_ids: torch.Tensor) -> None:
         n = len(env_ids)
+        previous = self.commands[env_ids].clone()
         for col, key in enumerate(("lin_vel_x", "lin_vel_y", "ang_vel_yaw")):
             lo, hi = self.command_ranges[key]
             self.commands[env_ids, col] = _uniform(lo, hi, (n,), self.device)
@@ -461,8 +472,12 @@ class LeggedEnv(VecEnv):
             keep = torch.randint(3, (int(single.sum()),), device=self.device)
             mask = torch.nn.functional.one_hot(keep, 3).to(self.commands.dtype)
             self.commands[env_ids[single]] *= mask
+        reverse = torch.rand(n, device=self.device) < self.cfg.commands.reverse_fraction
+        if reverse.any():
+            self.commands[env_ids[reverse], 0:2] = -previous[reverse, 0:2]
+            self.commands[env_ids[reverse], 2] = previous[reverse, 2]
         standing = torch.rand(n, device=self.device) < self.cfg.commands.standing_fraction
-        self.commands[env_ids[standing]] = 0.0
+        self.commands[env_ids[standing & ~reverse]] = 0.0
 
     def _maybe_push(self) -> None:
         dr = self.cfg.domain_rand
@@ -479,7 +494,7 @@ class LeggedEnv(VecEnv):
         if term.trunk_contact:
             terminated |= self.contact_found(("trunk_contact",))[:, 0]
         if term.max_tilt_deg is not None:
-            terminated |= self.projected_gravity[:, 2] > -math.cos(math.radians(term.max_tilt_deg))
+            terminated |= self.ground_gravity[:, 2] > -math.cos(math.radians(term.max_tilt_deg))
         # A simulation that blew up, or a policy that produced NaN/inf, ends the episode
         # (counted in the log) instead of poisoning the batch.
         nonfinite = ~(torch.isfinite(self.sim.qpos).all(1) & torch.isfinite(self.sim.qvel).all(1))
@@ -705,8 +720,38 @@ class LeggedEnv(VecEnv):
         lo, hi = (math.floor(t / self.sim.physics_dt + 0.5) for t in seconds)
         return torch.randint(lo, hi + 1, (n,), device=self.device)
 
+    def set_ground_slope(
+        self, slope_deg: float | torch.Tensor, downhill_yaw: float | torch.Tensor, env_ids: torch.Tensor | None = None
+    ) -> None:
+        """Tilt the ground of `env_ids` (None: all) by `slope_deg`, falling towards the world
+        yaw `downhill_yaw` (rad; 0: downhill along +x), by tilting gravity; switches off the
+        per-episode draw of terrain.slope_deg. Takes effect now and stays over resets."""
+        self.external_slope = True
+        self._tilt_gravity(torch.arange(self.num_envs, device=self.device) if env_ids is None else env_ids,
+                           slope_deg, downhill_yaw)  # fmt: skip
+        self._refresh_state()
+
+    def _tilt_gravity(self, env_ids: torch.Tensor, slope_deg, downhill_yaw) -> None:
+        n, dev = len(env_ids), self.device
+        a = torch.deg2rad(torch.as_tensor(slope_deg, dtype=torch.float32, device=dev).expand(n))
+        yaw = torch.as_tensor(downhill_yaw, dtype=torch.float32, device=dev).expand(n)
+        g = torch.stack([torch.sin(a) * torch.cos(yaw), torch.sin(a) * torch.sin(yaw), -torch.cos(a)], dim=1)
+        self.gravity_dir[env_ids] = g
+        self.sim.set_gravity(env_ids, g * float(np.linalg.norm(self.model.opt.gravity)))
+
+    def _draw_slopes(self, env_ids: torch.Tensor) -> None:
+        t, n, dev = self.cfg.terrain, len(env_ids), self.device
+        slope = _uniform(0.0, t.slope_deg, (n,), dev) * (torch.rand(n, device=dev) < t.slope_fraction)
+        self._tilt_gravity(env_ids, slope, _uniform(-math.pi, math.pi, (n,), dev))
+
+    def ground_slope_deg(self) -> torch.Tensor:
+        """Each env's ground tilt (deg), (num_envs,)."""
+        return torch.rad2deg(torch.acos((-self.gravity_dir[:, 2]).clamp(-1.0, 1.0)))
+
     def randomize(self, env_ids: torch.Tensor) -> None:
         dr, m, dev, n = self.cfg.domain_rand, self.model, self.device, len(env_ids)
+        if self.cfg.terrain.slope_deg > 0.0 and not self.external_slope:
+            self._draw_slopes(env_ids)
         if hasattr(self, "obs_bias"):  # not in __init__'s first reset: _init_observation_layout draws it
             self._draw_obs_bias(env_ids)
         if self._latency_on:
@@ -813,6 +858,11 @@ class LeggedEnv(VecEnv):
     def _obs_projected_gravity(self) -> torch.Tensor:
         return self.projected_gravity
 
+    def _obs_ground_gravity(self) -> torch.Tensor:
+        """The ground's downward normal in the trunk frame (unit): with projected_gravity it
+        gives the slope under the robot (privileged: a robot's IMU sees only gravity)."""
+        return self.ground_gravity
+
     def _obs_joint_pos(self) -> torch.Tensor:
         """Position joints' angles from the default pose; a wheel's angle says nothing
         (it turns freely), so velocity joints read 0."""
@@ -843,7 +893,8 @@ class LeggedEnv(VecEnv):
         return torch.sum(self.base_ang_vel[:, :2] ** 2, dim=1)
 
     def _reward_orientation(self) -> torch.Tensor:
-        return torch.sum(self.projected_gravity[:, :2] ** 2, dim=1)
+        """Trunk tilt from the ground plane: |ground normal's xy in the trunk frame|^2 >= 0."""
+        return torch.sum(self.ground_gravity[:, :2] ** 2, dim=1)
 
     def _reward_base_height(self) -> torch.Tensor:
         return (self.base_height - self.cfg.rewards.base_height_target) ** 2
@@ -882,7 +933,12 @@ class LeggedEnv(VecEnv):
         return torch.sum(over.clamp(min=0.0), dim=1)
 
     def _reward_stand_still(self) -> torch.Tensor:
+        """Sum |q - q0| (rad) >= 0 under a zero command (and, with rewards.stand_still_max_speed,
+        only once the trunk moves slower than that): the legs rest when there is nothing to do."""
         still = torch.linalg.norm(self.commands, dim=1) < 0.1
+        slow = self.cfg.rewards.stand_still_max_speed
+        if slow is not None:
+            still = still & (torch.linalg.norm(self.base_lin_vel[:, :2], dim=1) < slow)
         return torch.sum(self._obs_joint_pos().abs(), dim=1) * still
 
     def close(self) -> None:

@@ -40,7 +40,12 @@ class CommandRanges:
 class CommandsCfg:
     resampling_time: float = field(default=10.0, metadata={"min": 0.02})
     standing_fraction: float = field(default=0.1, metadata={"min": 0.0, "max": 1.0})
-    """Fraction of resampled commands that are exactly zero (stand still)."""
+    """Fraction of resampled commands that are exactly zero (stand still). A zero drawn
+    while the robot moves is a stop: the joystick let go, a stop pressed at speed."""
+    reverse_fraction: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})
+    """Fraction of resampled commands that instead reverse the planar part of the command
+    before it (vx, vy -> -vx, -vy, yaw rate kept): an abrupt reversal from the speed the
+    robot has reached."""
     single_axis_fraction: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})
     """Fraction of resampled commands that keep only one of vx, vy, wz (drawn uniformly),
     so that pure sideways motion and turning on the spot are trained, not only mixtures."""
@@ -167,6 +172,10 @@ class RewardsCfg:
     soft_joint_vel_limit: float = field(default=0.9, metadata={"min": 0.0, "max": 1.0})
     soft_torque_limit: float = field(default=0.9, metadata={"min": 0.0, "max": 1.0})
     only_positive_rewards: bool = False
+    stand_still_max_speed: float | None = field(default=None, metadata={"min": 0.0})
+    """stand_still applies only while the trunk's planar speed is below this (m/s), so
+    that under a zero command the legs may brake a moving robot or hold it on a slope
+    before they are asked to rest; None: whenever the command is zero."""
 
 
 @dataclass
@@ -187,6 +196,14 @@ class TerrainCfg:
     spawn_on_course: bool = False
     """Reset robots at random places on the course (x in [0, its end + 2 m], |y| up to
     width / 2 - 1 m) instead of the origin: training on its slopes."""
+    slope_deg: float = field(default=0.0, metadata={"min": 0.0, "max": 30.0})
+    """Largest tilt (deg) of the whole ground, drawn per episode uniformly in [0, slope_deg]
+    with a uniformly random downhill direction (so every direction relative to the
+    heading). Made by tilting gravity, which for an unbounded plane is the same physics:
+    the IMU's projected gravity shows the slope, heights and velocities are along the
+    ground. 0: flat. `LeggedEnv.set_ground_slope` fixes it instead (evaluation)."""
+    slope_fraction: float = field(default=1.0, metadata={"min": 0.0, "max": 1.0})
+    """Share of the episodes drawn on a tilted ground when slope_deg > 0 (the rest flat)."""
 
 
 @dataclass

@@ -13,6 +13,7 @@ only through torch tensors shaped (num_envs, n):
   parameters in `RANDOMIZABLE_FIELDS`;
 * `keep_substep_states()` / `delayed_state(steps)`: the state each env had a given number
   of substeps before the end of the last step (an observation delay shorter than a step);
+* `set_gravity(env_ids, gravity)`: per-env gravity vector (a tilted ground);
 * `apply_force(env_ids, body, force)`: a Cartesian force (and optionally torque) on a
   body, held for the next `step` only (one control period), then cleared.
 
@@ -195,6 +196,11 @@ class SimBackend(abc.ABC):
     @abc.abstractmethod
     def get_model_field(self, name: str) -> torch.Tensor:
         """Per-env values of field `name`, shaped (num_envs, *field_shape) (a copy)."""
+
+    @abc.abstractmethod
+    def set_gravity(self, env_ids: IndexLike, gravity: torch.Tensor | np.ndarray) -> None:
+        """Set the gravity vector (n, 3), m/s^2 in the world frame, of envs `env_ids`: a
+        tilted vector is a tilted ground plane (the env's slopes)."""
 
     @abc.abstractmethod
     def apply_force(self, env_ids: IndexLike, body: str | int, force: torch.Tensor) -> None:

@@ -235,6 +235,13 @@ class CpuBackend(SimBackend):
         out = np.stack([getattr(m, name) for m in self._models])
         return torch.from_numpy(out).to(self.device)
 
+    def set_gravity(self, env_ids: IndexLike, gravity: torch.Tensor | np.ndarray) -> None:
+        ids = self.env_index(env_ids)
+        g = _to_numpy(gravity)
+        self._check_rows("gravity", g, len(ids), (3,))
+        for row, env in enumerate(ids):
+            self._models[env].opt.gravity[:] = g[row]
+
     def apply_force(self, env_ids: IndexLike, body: str | int, force: torch.Tensor) -> None:
         ids = self.env_index(env_ids)
         bid = self.body_id(body)

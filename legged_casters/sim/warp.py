@@ -110,6 +110,11 @@ class WarpBackend(SimBackend):
         self._warmstart = wp.to_torch(self.wd.qacc_warmstart)
         self._act = wp.to_torch(self.wd.act) if model.na else None
         self._fields = {name: wp.to_torch(getattr(self.wm, name)) for name in RANDOMIZABLE_FIELDS}
+        # Gravity is an Option field that put_model does not batch; MuJoCo Warp's kernels read
+        # opt.gravity[world % its length], so one row per world gives each env its own.
+        with wp.ScopedDevice(self.wp_device):
+            self.wm.opt.gravity = wp.array(np.tile(model.opt.gravity, (num_envs, 1)), dtype=wp.vec3)
+        self._gravity = wp.to_torch(self.wm.opt.gravity)
         for name, view in self._fields.items():
             if view.shape[0] != num_envs:
                 raise RuntimeError(f"mujoco_warp did not batch model field {name}: shape {tuple(view.shape)}")
@@ -278,6 +283,12 @@ class WarpBackend(SimBackend):
     def get_model_field(self, name: str) -> torch.Tensor:
         self.field_shape(name)
         return self._fields[name].clone()
+
+    def set_gravity(self, env_ids: IndexLike, gravity: torch.Tensor | np.ndarray) -> None:
+        ids_np = self.env_index(env_ids)
+        g = torch.as_tensor(gravity).to(self.device, self._gravity.dtype)
+        self._check_rows("gravity", g, len(ids_np), (3,))
+        self._gravity[torch.as_tensor(ids_np, device=self.device)] = g
 
     def apply_force(self, env_ids: IndexLike, body: str | int, force: torch.Tensor) -> None:
         ids_np = self.env_index(env_ids)

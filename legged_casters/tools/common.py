@@ -31,6 +31,9 @@ EXIT_USAGE = 2
 LOG_ROOT_ENV = "LEGGED_CASTERS_LOG_ROOT"
 PREFERRED_TASK = "caster_omni"
 RUN_FILE = "run.yaml"
+SELECTED_FILE = "selected.yaml"
+"""The checkpoint a run's full fixed evaluation chose (evaluate.py --select, train.py's
+`select_last`): what play, evaluate and export load when no --checkpoint is given."""
 CHECKPOINT_RE = re.compile(r"^model_(\d+)\.pt$")
 RUN_DIR_RE = re.compile(r"^\d{4}-\d{2}-\d{2}_\d{2}-\d{2}-\d{2}(_.*)?$")
 
@@ -200,11 +203,35 @@ def find_run(root: Path, experiment: str, load_run: str | None) -> Path:
     return with_ckpt[-1]
 
 
-def find_checkpoint(run_dir: Path, checkpoint: str | None) -> Path:
+def selected_checkpoint(run_dir: Path) -> Path | None:
+    """The checkpoint recorded in the run's selected.yaml, None where there is none."""
+    path = run_dir / SELECTED_FILE
+    if not path.is_file():
+        return None
+    try:
+        name = (yaml.safe_load(path.read_text()) or {}).get("file")
+    except yaml.YAMLError:
+        name = None
+    if not name or not (run_dir / name).is_file():
+        raise UsageError(
+            f"{path} names no checkpoint of this run ({name!r}): delete it or run evaluate.py --select again"
+        )
+    return (run_dir / name).resolve()
+
+
+def find_checkpoint(run_dir: Path, checkpoint: str | None, newest: bool = False) -> Path:
     """--checkpoint: an iteration (5), "best" (model_best.pt: the best deterministic
-    evaluation during training), a file name (model_5.pt) or a path; default the newest."""
+    evaluation during training), "selected" (the run's selected.yaml: the checkpoint its
+    full evaluation chose), "latest", a file name (model_5.pt) or a path; default the
+    selected one where the run has one, else (or with `newest`) the newest."""
     found = checkpoints(run_dir)
     available = ", ".join(p.name for _, p in found[-10:]) or "(none)"
+    if checkpoint in (None, "", "selected") and not newest:
+        chosen = selected_checkpoint(run_dir)
+        if chosen is not None:
+            return chosen
+        if checkpoint == "selected":
+            raise UsageError(f"--checkpoint selected: run {run_dir} has no {SELECTED_FILE} (evaluate.py --select)")
     if checkpoint in (None, "", "-1", "latest"):
         if not found:
             raise UsageError(f"run {run_dir} has no checkpoint (model_<iteration>.pt)")
@@ -443,7 +470,11 @@ def add_run_selection_flags(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--task", help="registered task (default: caster_omni when registered, else the first)")
     g.add_argument("--experiment_name", help="folder under the log root (default: the task's train config)")
     g.add_argument("--load_run", help="run folder name under logs/<experiment>, or a path (default: newest)")
-    g.add_argument("--checkpoint", help="iteration number, model_<it>.pt or a path (default: newest)")
+    g.add_argument(
+        "--checkpoint",
+        help="iteration number, 'best', 'selected', 'latest', model_<it>.pt or a path (default: the checkpoint the "
+        "run's full evaluation selected, else the newest)",
+    )
     g.add_argument("--log_root", help=f"root of the run folders (default: ${LOG_ROOT_ENV} or <repo>/logs)")
     add_verbose_flag(parser)
 

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import yaml
 from tensordict import TensorDict
 
 from legged_casters.tools import common
@@ -51,6 +52,11 @@ class Scenario:
     """Seconds between pushes of a random-commands scenario (PUSH_VEL each)."""
     start_x: float | None = None
     """Start at this x on the evaluation hill (HILL_SEGMENTS) instead of the origin."""
+    slope_deg: float = 0.0
+    """The whole ground tilted by this much (LeggedEnv.set_ground_slope) ..."""
+    downhill_yaw: float = 0.0
+    """... falling towards this world yaw (rad): 0 is straight ahead of the starting robot
+    (it faces +x), pi straight behind it."""
 
     def command(self, t: float) -> tuple[float, float, float]:
         cmd = self.segments[0][1]
@@ -75,6 +81,53 @@ TRACKING = (
     _const("wz +0.8", (0.0, 0.0, 0.8)),
     _const("wz -0.8", (0.0, 0.0, -0.8)),
 )
+BRAKE_AT_S = 6.0
+"""s: the brake scenarios command their first speed this long before the stop or reversal."""
+
+
+def _brake(name: str, before: float, after: float) -> Scenario:
+    return Scenario(name, ((0.0, (before, 0.0, 0.0)), (BRAKE_AT_S, (after, 0.0, 0.0))), BRAKE_AT_S + 6.0,
+                    BRAKE_AT_S + 2.0, kind="brake")  # fmt: skip
+
+
+def _slope(name: str, cmd: float, deg: float, downhill_ahead: bool, duration: float = 10.0) -> Scenario:
+    kind = "hold" if cmd == 0.0 else "slope"
+    return _const(name, (cmd, 0.0, 0.0), duration=duration, measure_from=0.0 if kind == "hold" else 4.0, kind=kind,
+                  slope_deg=deg, downhill_yaw=0.0 if downhill_ahead else math.pi)  # fmt: skip
+
+
+STOP = (
+    _brake("stop from +1.5", 1.5, 0.0),
+    _brake("stop from -1.5", -1.5, 0.0),
+    _brake("stop from +2.0", 2.0, 0.0),
+    _brake("stop from -2.0", -2.0, 0.0),
+    _brake("reverse +2.0 to -0.5", 2.0, -0.5),
+    _brake("reverse -2.0 to +0.5", -2.0, 0.5),
+    _const("hold flat", (0.0, 0.0, 0.0), duration=10.0, measure_from=0.0, kind="hold"),
+    _slope("hold 3deg", 0.0, 3.0, True, duration=6.0),
+    _slope("vx +0.5 down 3deg", 0.5, 3.0, True),
+    _slope("vx +0.5 up 3deg", 0.5, 3.0, False),
+    _slope("vx -0.5 down 3deg", -0.5, 3.0, False),
+    _slope("vx -0.5 up 3deg", -0.5, 3.0, True),
+    _slope("hold 5deg", 0.0, 5.0, True, duration=6.0),
+    _slope("vx +0.5 down 5deg", 0.5, 5.0, True),
+    _slope("vx +0.5 up 5deg", 0.5, 5.0, False),
+)
+"""Stopping and slopes: a zero command at speed (rest = |vx| below REST_SPEED from then to
+the end), reversals at speed (time until vx crosses zero), zero commands held on the flat
+and on 3 and 5 deg of ground tilted ahead of or behind the robot, and +-0.5 m/s down and up
+those slopes (a command with the sign of the downhill direction goes down)."""
+REST_SPEED = 0.1
+"""m/s: a stopped robot's |vx| stays below this."""
+STOP_BARS = {"rest_s": 2.0, "rest_m": 1.5, "cross_s": 2.0}
+"""Stopping bars: at rest within 2.0 s and 1.5 m of the zero command; a reversal's vx crosses
+zero within 2.0 s of the new command."""
+HOLD_BARS = {"hold flat": (0.1, 5.0), "hold 3deg": (0.3, None)}
+"""Zero-command bars: hold scenario -> (largest distance from the start m, largest heading
+change deg or None) over the whole scenario (10 s flat, 6 s on the slope)."""
+SLOPE_VX_ERROR = 0.2
+"""m/s: the mean |vx error| bar of the 3 deg slope scenarios (5 deg: no fall)."""
+
 FULL = TRACKING + (
     Scenario(
         "fig6 step", ((0.0, (0.0, 0.0, 0.0)), (2.0, (-0.6, 0.0, 0.0)), (6.0, (0.6, 0.0, 0.0))), 10.0, 6.0, kind="step"
@@ -84,6 +137,7 @@ FULL = TRACKING + (
     _const("mode rear_wheel", (0.8, 0.0, 0.0), mode="rear_wheel", kind="mode"),
     Scenario("random+pushes", ((0.0, (0.0, 0.0, 0.0)),), 100.0, 0.0, copies=4, random_commands=True, kind="random"),
 )
+FULL = FULL + STOP
 QUICK = tuple(
     Scenario(s.name, s.segments, 5.0, 2.0)
     for s in TRACKING
@@ -147,7 +201,7 @@ RAMP_BEST_2S = 2.0
 DOWNHILL_VX_ERROR = 0.2
 ESTIMATOR_RMS = 0.1
 
-SCENARIO_SETS = {"full": FULL, "quick": QUICK, "speed": SPEED, "all": FULL + SPEED}
+SCENARIO_SETS = {"full": FULL, "quick": QUICK, "speed": SPEED, "stop": STOP, "all": FULL + SPEED}
 
 THRESHOLDS = {
     "vx +0.5": ("vx", 0.15), "vx -0.5": ("vx", 0.15), "vx +1.0": ("vx", 0.15), "vx -1.0": ("vx", 0.15),
@@ -190,6 +244,7 @@ EVAL_SETTINGS = {
     "commands.curriculum": False,
     "terrain.segments": [],
     "terrain.spawn_on_course": False,
+    "terrain.slope_deg": 0.0,
 }
 """What makes an env an evaluation env: no noise, no randomisation, a standing start at
 the origin on flat ground (a task trained on a terrain course is evaluated on the flat floor; the
@@ -309,6 +364,7 @@ class ScenarioResult:
     """Mean |error| of vx, vy, wz over the window."""
     falls: int = 0
     extra: dict[str, float] = field(default_factory=dict)
+    slope_deg: float = 0.0
 
 
 def _schedule(scenarios, owner: list[int], steps: int, dt: float, ranges: dict, gen: torch.Generator):
@@ -368,6 +424,9 @@ def run_scenarios(
         if env.course is None:
             raise ValueError("a scenario starts on the evaluation hill: build the env by eval_env_cfg(cfg, scenarios)")
         env.spawn_x = torch.tensor([math.nan if scenarios[i].start_x is None else scenarios[i].start_x for i in owner])
+    if hasattr(env, "set_ground_slope"):  # every run sets every env's ground (flat where none is named)
+        env.set_ground_slope(torch.tensor([scenarios[i].slope_deg for i in owner], device=dev),
+                             torch.tensor([scenarios[i].downhill_yaw for i in owner], device=dev))  # fmt: skip
     obs = env.reset()
     steps = int(round(max(s.duration for s in scenarios) / env.dt))
     cmds_all, alive = _schedule(scenarios, owner, steps, env.dt, env.command_ranges, gen)
@@ -429,7 +488,7 @@ def run_scenarios(
         k0, k1 = int(round(s.measure_from / env.dt)), int(round(s.duration / env.dt))
         v = vel_log[k0:k1, cols]
         c = cmds_all[k0:k1, cols]
-        r = ScenarioResult(s.name, s.kind, s.command(s.duration))
+        r = ScenarioResult(s.name, s.kind, s.command(s.duration), slope_deg=s.slope_deg)
         for a, key in enumerate(("vx", "vy", "wz")):
             r.mean[key] = float(v[..., a].mean())
             r.err[key] = float((v[..., a] - c[..., a]).abs().mean())
@@ -453,6 +512,13 @@ def run_scenarios(
             # No backward motion before the step, no sign change to time: that fails the check.
             r.extra["sign_change_s"] = float(positive[0] + 1) * env.dt if reversed_ else math.inf
             r.extra["vx_before_step"] = before
+        if s.kind == "brake":
+            r.extra.update(_brake_measures(s, vel_log[:, cols[0], 0], pos_log[:, cols[0]], k1, env.dt))
+        if s.kind == "hold":
+            start = pos_log[0, cols[0]]
+            r.extra["max_drift_m"] = float(torch.linalg.norm(pos_log[:k1, cols[0]] - start, dim=1).max())
+            turn = wrap_to_pi(yaw_log[:k1, cols[0]] - yaw_log[0, cols[0]])
+            r.extra["max_turn_deg"] = math.degrees(float(turn.abs().max()))
         if est_log is not None:
             r.extra["est_rms"] = float(est_log[k0:k1, cols].mean().sqrt())
             r.extra["est_vx"] = float(est_vx_log[k0:k1, cols].mean())
@@ -478,6 +544,31 @@ def run_scenarios(
                 r.extra["masked_over_driven"] = float(rms[mask].mean() / rms[~mask].mean().clamp(min=1e-9))
         results.append(r)
     return results
+
+
+def _brake_measures(s: Scenario, vx: torch.Tensor, xy: torch.Tensor, k1: int, dt: float) -> dict[str, float]:
+    """A brake scenario's measurements (vx (steps,), xy (steps, 2): after each step, i.e.
+    index k is time (k + 1) dt): the speed when the new command came (`v_at_cmd`); for a
+    stop the time and path from it until |vx| stays below REST_SPEED to the end
+    (`rest_s`, `rest_m`; inf when it never does); for a reversal the time until vx first
+    has the new command's sign (`cross_s`, inf when it never does)."""
+    t_cmd, target = s.segments[-1][0], s.segments[-1][1][0]
+    kc = int(round(t_cmd / dt))  # vx[kc - 1]: the velocity at the new command's time
+    out = {"v_at_cmd": float(vx[kc - 1])}
+    after = vx[kc:k1]
+    if target == 0.0:
+        moving = (after.abs() >= REST_SPEED).nonzero().flatten()
+        last = int(moving[-1]) + 1 if len(moving) else 0  # steps after the command until rest for good
+        if last >= len(after):
+            out["rest_s"], out["rest_m"] = math.inf, math.inf
+        else:
+            path = xy[kc - 1 : kc + last]
+            out["rest_s"] = last * dt
+            out["rest_m"] = float(torch.linalg.norm(path[1:] - path[:-1], dim=1).sum()) if last else 0.0
+    else:
+        crossed = (after * math.copysign(1.0, target) > 0.0).nonzero().flatten()
+        out["cross_s"] = float(crossed[0] + 1) * dt if len(crossed) else math.inf
+    return out
 
 
 def cost_of_transport(env, power: torch.Tensor, xy: torch.Tensor) -> float:
@@ -553,6 +644,30 @@ def verdict(results: list[ScenarioResult], task: str | None = None) -> list[tupl
         r = by["downhill 3deg"]
         ok = r.err["vx"] <= DOWNHILL_VX_ERROR and not r.falls
         checks.append((f"downhill 3deg: |vx error| <= {DOWNHILL_VX_ERROR}", ok, f"{r.err['vx']:.3f}"))
+    for r in results:
+        if r.kind == "brake" and "rest_s" in r.extra:
+            t, d = r.extra["rest_s"], r.extra["rest_m"]
+            ok = t <= STOP_BARS["rest_s"] and d <= STOP_BARS["rest_m"] and not r.falls
+            checks.append((f"{r.name}: at rest within {STOP_BARS['rest_s']} s and {STOP_BARS['rest_m']} m", ok,
+                           f"{t:.2f} s, {d:.2f} m"))  # fmt: skip
+        elif r.kind == "brake":
+            t = r.extra["cross_s"]
+            ok = t <= STOP_BARS["cross_s"] and not r.falls
+            checks.append((f"{r.name}: vx crosses zero within {STOP_BARS['cross_s']} s", ok, f"{t:.2f} s"))
+        elif r.kind == "hold" and r.name in HOLD_BARS:
+            dist, turn = HOLD_BARS[r.name]
+            d, y = r.extra["max_drift_m"], r.extra["max_turn_deg"]
+            ok = d < dist and (turn is None or y < turn) and not r.falls
+            bar = f"< {dist} m" + (f" and < {turn:g} deg" if turn is not None else "")
+            checks.append((f"{r.name}: zero command moves it {bar}", ok, f"{d:.2f} m, {y:.0f} deg"))
+        elif r.kind == "slope" and r.slope_deg <= 3.0:
+            ok = r.err["vx"] <= SLOPE_VX_ERROR and not r.falls
+            checks.append((f"{r.name}: |vx error| <= {SLOPE_VX_ERROR}", ok, f"{r.err['vx']:.3f}"))
+    steep = [r for r in results if r.kind in ("hold", "slope") and r.slope_deg > 3.0]
+    if steep:
+        n = sum(r.falls for r in steep)
+        deg = max(r.slope_deg for r in steep)
+        checks.append((f"{deg:g} deg slope: 0 falls (hold, up, down)", n == 0, str(n)))
     est = [r.extra["est_rms"] for r in results if r.kind == "track" and "est_rms" in r.extra]
     if est:
         worst = max(est)
@@ -695,6 +810,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="LIST",
         help="rank several checkpoints of the run through the scenarios: a comma list of iterations and 'best' "
         "(500,750,best), or 'all' (every model_<it>.pt and model_best.pt); ordered by falls, then checks passed",
+    )
+    p.add_argument(
+        "--select",
+        action="store_true",
+        help="with --checkpoints: record the first of the ranking in the run's selected.yaml, the checkpoint play, "
+        "evaluate and export then load when no --checkpoint is given",
     )
     p.add_argument(
         "--sim2sim",
@@ -848,7 +969,26 @@ def rank(args: argparse.Namespace, default_log_root: Path | None) -> int:
     top = min(rows, key=_rank_key)
     print(f"\n[{PROG}] first by this evaluation: {top['file']} (iteration {top['iteration']}): "
           f"{top['passed']}/{top['checks']} checks, {top['falls']} falls")  # fmt: skip
+    if args.select:
+        write_selection(sel.run_dir, top, rows, args.scenarios, cond_name)
     return common.EXIT_OK
+
+
+def write_selection(run_dir: Path, top: dict, rows: list[dict], scenarios: str, condition: str) -> None:
+    """The run's selected.yaml: the chosen checkpoint, why, and every ranked row."""
+    record = {
+        "file": top["file"],
+        "iteration": top["iteration"],
+        "why": f"fewest falls ({top['falls']}), then most checks passed ({top['passed']} of {top['checks']}), then "
+        f"the newest, of {len(rows)} checkpoints through evaluate.py's '{scenarios}' scenarios ({condition})",
+        "ranked": [
+            {k: row[k] for k in ("file", "iteration", "passed", "checks", "falls", "failed")}
+            for row in sorted(rows, key=_rank_key)
+        ],  # fmt: skip
+    }
+    common.write_text_atomic(run_dir / common.SELECTED_FILE, yaml.safe_dump(record, sort_keys=False))
+    print(f"[{PROG}] selected {top['file']}: {run_dir / common.SELECTED_FILE} (play, evaluate and export load it "
+          "when no --checkpoint is given)")  # fmt: skip
 
 
 def resolve_seeds(args: argparse.Namespace) -> list[int]:
@@ -1017,6 +1157,9 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
             f"{own} runs its own conditions: leave out --physics-dt, --action-latency-ms, --observation-delay-ms, "
             "--noise, --imu-bias"
         )
+    if args.select and (not args.checkpoints or args.robot_clock):
+        raise UsageError("--select records the first of a --checkpoints ranking under one condition: add "
+                         "--checkpoints LIST and leave out --robot-clock")  # fmt: skip
     if args.checkpoints:
         return rank(args, default_log_root)
     seeds = resolve_seeds(args)

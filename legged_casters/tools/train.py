@@ -307,7 +307,7 @@ def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Pa
     experiment = args.experiment_name or spec.train_cfg.experiment_name
     if args.resume:
         run_dir = common.find_run(root, experiment, args.load_run)
-        ckpt_path = common.find_checkpoint(run_dir, args.checkpoint)
+        ckpt_path = common.find_checkpoint(run_dir, args.checkpoint, newest=True)  # resume: where it stopped
         ckpt = common.load_checkpoint(ckpt_path, map_location=device)
     env_cfg, train_cfg, per_process = configs_for(args, spec, run_dir, world)
     if per_process and rank == 0:
@@ -396,7 +396,20 @@ def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Pa
         print(
             f"[{PROG}] watch: tensorboard --logdir {logdir}    play: python play.py --task {task} --load_run {run_dir}"
         )
+        if train_cfg.select_last:
+            return select_after_training(task, run_dir, train_cfg)
     return common.EXIT_OK
+
+
+def select_after_training(task: str, run_dir: Path, train_cfg) -> int:
+    """Rank the newest `select_last` saved checkpoints by evaluate.py's full fixed evaluation
+    and record the first in the run's selected.yaml (evaluate.py --select)."""
+    from legged_casters.tools import evaluate
+
+    saved = [it for it, _ in common.checkpoints(run_dir)][-train_cfg.select_last :]
+    print(f"[{PROG}] selecting the checkpoint by the full evaluation: iterations {', '.join(map(str, saved))}")
+    argv = ["--task", task, "--load_run", str(run_dir), "--checkpoints", ",".join(map(str, saved)), "--select"]
+    return evaluate.main(argv)
 
 
 def _strip_flag(argv: list[str], flag: str) -> list[str]:
