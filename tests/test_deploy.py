@@ -1204,8 +1204,9 @@ def test_full_loop_wheel_robot_runs_the_shipped_wheel_policy(tmp_path, realtime)
 
 
 def test_shipped_caster_export_still_loads_and_runs_in_the_bridge(tmp_path):
-    """A 12-joint export written before the wheel robot (no joint_control) runs unchanged."""
-    meta = load_meta(REPO / "resources" / "policies" / "caster_omni")
+    """A 12-joint export written before the wheel robot (no joint_control; the policy.yaml of an
+    earlier shipped caster policy, kept in tests/data) runs unchanged."""
+    meta = load_meta(REPO / "tests" / "data" / "caster_policy_before_joint_control.yaml")
     assert meta.num_joints == 12 and all(meta.position_mask) and meta.velocity_action_scale == 0.0
     sent = []
     cfg = BridgeConfig(standup="linear", standup_time=0.02, operator_timeout=0.0)

@@ -31,6 +31,7 @@ CASTER = [
     "--train-set", "policy.actor_hidden_dims=[16]",
     "--train-set", "policy.critic_hidden_dims=[16]",
     "--train-set", "estimator.hidden_dims=[16]",
+    "--train-set", "select_last=0",
 ]  # fmt: skip
 
 

@@ -441,7 +441,7 @@ def caster_omni_skate_cfg() -> CasterOmniCfg:
     cfg.commands.single_axis_fraction = 0.5
     # The vx range widens at each end on its own while the robots commanded near that end
     # (straight, four casters) track vx. The episode rule never widened it (runs 9, 10):
-    # it scores vy, turning and the two-caster modes too. caster_omni_speed, in training
+    # it scores vy, turning and the two-caster modes too. A policy of this configuration, in training
     # conditions (its mean + noise of std 0.2), scores 0.60-0.64 at the -1 m/s end and
     # 0.74 at +1 m/s: 0.6 is the score of a constant vx error of 0.36 m/s.
     cfg.commands.curriculum_mode = "edge"
@@ -469,20 +469,6 @@ def caster_omni_cfg() -> CasterOmniCfg:
     cfg.terrain.slope_deg = 6.0
     cfg.terrain.slope_fraction = 0.6
     cfg.rewards.stand_still_max_speed = 0.2
-    return cfg
-
-
-def caster_omni_sym_cfg() -> CasterOmniCfg:
-    """The env of `caster_omni_sym`, the recipe of runs 103 and 104 (docs/tasks.md, "Symmetric
-    by construction"): caster_omni with 1 s of history, actions applied 0-20 ms late, the
-    yaw-rate reward doubled and the vx range widening at a score of 0.5 (a constant error of
-    0.42 m/s) instead of 0.6. Its train config adds the exact mirror symmetry, the fixed and
-    then lowered exploration noise, and the 2 ms physics step in every second process."""
-    cfg = caster_omni_skate_cfg()
-    cfg.history_length = 50
-    cfg.domain_rand.action_latency_range = (0.0, 0.02)
-    cfg.rewards.scales["tracking_ang_vel"] = 2.0
-    cfg.commands.curriculum_threshold = 0.5
     return cfg
 
 
@@ -514,22 +500,6 @@ def caster_omni_skate_train_cfg() -> TrainCfg:
     # 3 passes over each rollout instead of rsl_rl's 5: the update drops from 0.65 to 0.42 s of a
     # 1.8 s iteration and 15-minute runs learn as much per minute (docs/training_speed.md).
     cfg.algorithm.num_learning_epochs = 3
-    return cfg
-
-
-def caster_omni_sym_train_cfg() -> TrainCfg:
-    """caster_omni's training with the actor and estimator exactly left-right symmetric, the
-    estimator not reading the command, the exploration std fixed at 0.2 and lowered to 0.1
-    over iterations 750-900, and (with 2 or more processes, `--procs`) process 0 at 5 ms
-    physics, process 1 at 2 ms; seed 2 as run 104, the shipped `caster_omni_sym`."""
-    cfg = caster_omni_skate_train_cfg()
-    cfg.experiment_name = "caster_omni_sym"
-    cfg.seed = 2
-    cfg.policy.learn_noise_std = False
-    cfg.policy.noise_std_schedule = ((750, 0.2), (900, 0.1))
-    cfg.estimator.skip_terms = ("commands",)
-    cfg.symmetry.mode = "exact"
-    cfg.env_per_process = {"sim.timestep": [0.005, 0.002], "sim.decimation": [4, 10]}
     return cfg
 
 

@@ -54,14 +54,7 @@ class Result:
 
 DEFAULT_CASTER = "caster_omni"
 """The caster policy of every experiment (the default of play, evaluate and the bridge)."""
-SPEED_POLICIES = (
-    "caster_omni_speed",
-    "caster_omni_anneal",
-    "caster_omni_clock",
-    "caster_omni_track",
-    "caster_omni_sym",
-    "caster_omni_backlaw",
-)
+SPEED_POLICIES: tuple[str, ...] = ()
 """Further shipped caster policies (folders under resources/policies/) that the flat-ground
 experiments (Fig. 6, 9, 10, the slalom and Table II's flat COT) also run, each with rows and
 figures of its own. The loop of Table II's course stays the default's: it was trained on hills."""
@@ -581,11 +574,12 @@ class PathFollower:
 
 
 def trained_on(policy: str) -> str:
-    """'trained on slopes' when the shipped policy's config spawned it on a terrain course
-    (`policy`: its folder under resources/policies/; the task is the one its policy.yaml names)."""
+    """'trained on slopes' when the shipped policy's config tilted its ground or spawned it on a
+    terrain course (`policy`: its folder under resources/policies/; the task is the one its
+    policy.yaml names)."""
     exp = common.read_export(_shipped(policy) / "policy.pt", None)
     t = exp.env_cfg.terrain
-    return "trained on slopes" if t.segments and t.spawn_on_course else "trained on flat ground"
+    return "trained on slopes" if t.slope_deg > 0.0 or (t.segments and t.spawn_on_course) else "trained on flat ground"
 
 
 def slalom_y(x, amplitude: float):
