@@ -463,7 +463,7 @@ def launch_procs(args: argparse.Namespace, argv: list[str], default_log_root: Pa
         raise UsageError(
             f"--procs {args.procs} runs CPU processes (device cpu, backend cpu), not device {device} with the "
             f"{backend} backend: use --procs 1 or auto; for several GPUs start torchrun yourself "
-            "(README, 'Several GPUs')"
+            "(docs/training.md, 'On a GPU')"
         )
     cores = usable_cpus()
     if args.procs > cores:
