@@ -90,13 +90,8 @@ case "$task" in
   unitree) ;;
   install) echo "[setup] done: activate with 'source $VENV/bin/activate'" ;;
   train)
-    if [ -f train.py ]; then
-      # --procs auto: 2 training processes, one per core, on the CPU backend with 2+ usable
-      # cores (docs/training_speed.md). A --procs of yours comes later and wins.
-      exec "$PY" train.py --procs auto "$@"
-    else
-      # Until train.py lands (issue 5), the main job is the caster-physics check.
-      exec "$PY" scripts/plot_caster_force.py "$@"
-    fi ;;
+    # --procs auto: 2 training processes, one per core, on the CPU backend with 2+ usable
+    # cores (docs/training.md). A --procs of yours comes later and wins.
+    exec "$PY" train.py --procs auto "$@" ;;
   test) exec "$PY" -m pytest "$@" ;;
 esac

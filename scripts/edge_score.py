@@ -8,7 +8,7 @@ with the task's training settings (observation noise, pushes, randomisation, ran
 commands) and `commands.curriculum_mode=edge`, for `--periods` curriculum periods (one
 episode length each), and prints the mean vx tracking judged at each end of the vx range
 and the range after each period. It is how caster_omni's `curriculum_threshold` was
-chosen (docs/tasks.md).
+chosen (research/log.md).
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""The GPU check, prepared here and run there in one command (docs/gpu.md).
+"""The GPU check, prepared here and run there in one command (docs/training.md, "On a GPU").
 
     python scripts/gpu.py prepare              # here: download the wheels the GPU machine lacks into .whl/,
                                                # pack them into device calls, print the calls to make

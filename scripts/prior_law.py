@@ -33,7 +33,7 @@ DEFAULTS = {
     "forward": (0.1, "0.05,0.06,0.07,0.08,0.09,0.1,0.12,0.13,0.15,0.18,0.2,0.22,0.25"),
     "backward": (0.25, "0.14,0.15,0.16,0.17,0.18,0.19,0.2,0.22,0.24,0.26,0.3,0.35"),
 }
-"""direction: (tilt rad, amplitudes rad) measured for caster_omni's speed-law prior (docs/tasks.md)."""
+"""direction: (tilt rad, amplitudes rad) measured for caster_omni's speed-law prior (research/log.md)."""
 
 
 def monotone_law(amplitudes, speeds, fell) -> list[list[float]]:

@@ -178,7 +178,7 @@ def test_protocol_roundtrip_and_typed_rejections():
     x = standing_state(s)
     x.quat = [2.0, 0.0, 0.0, 0.0]
     cases["out_of_range"].append(x.encode())
-    for flags in (0x01, 0x80):  # no state flag bits are defined: docs/deploy.md
+    for flags in (0x01, 0x80):  # no state flag bits are defined: docs/protocol.md
         x = standing_state(s)
         x.flags = flags
         cases["out_of_range"].append(x.encode())

@@ -219,7 +219,7 @@ def test_the_shipped_estimator_policy_loads_everywhere_and_estimates_its_speed(n
     assert res.extra["est_rms"] < 0.2  # and knows how fast it goes
     assert abs(res.extra["est_vx"] - res.mean["vx"]) < res.extra["est_rms"] + 0.02  # its mean within its RMS
     if reads_command:
-        assert 0.02 < res.extra["est_cmd_gain"] < 0.5  # partly from the command it reads (docs/tasks.md)
+        assert 0.02 < res.extra["est_cmd_gain"] < 0.5  # partly from the command it reads (research/log.md)
     else:  # estimator.skip_terms [commands]: the command cannot move its estimate
         assert res.extra["est_cmd_gain"] == 0.0
 

@@ -33,7 +33,7 @@ needs_sdk = pytest.mark.skipif(bool(SDK_ERROR), reason=f"Unitree SDK not install
 
 
 def test_motor_map_is_the_documented_permutation():
-    """docs/deploy.md: unitree = [3, 4, 5, 0, 1, 2, 9, 10, 11, 6, 7, 8][ours], wheels [13, 12, 15, 14]."""
+    """docs/protocol.md: unitree = [3, 4, 5, 0, 1, 2, 9, 10, 11, 6, 7, 8][ours], wheels [13, 12, 15, 14]."""
     legs = [3, 4, 5, 0, 1, 2, 9, 10, 11, 6, 7, 8]
     assert list(unitree.MotorMap.for_robot("caster").motors) == legs
     assert list(unitree.MotorMap.for_robot("point").motors) == legs

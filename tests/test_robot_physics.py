@@ -139,7 +139,7 @@ def test_legs_tilt_the_swivel_axis_20_degrees_both_ways_while_standing(caster_mo
 @pytest.mark.parametrize("feet", build.FOOT_KINDS)
 def test_survives_perturbed_starts_and_random_targets(feet, models):
     """Contact settings that are stiff enough for the caster rig can fling the robot
-    or blow up under abuse (docs/caster_physics.md); these must not. (The wheel
+    or blow up under abuse (docs/robot.md); these must not. (The wheel
     robot's wheels get random velocity targets too.)"""
     model = models[feet]
     data = mujoco.MjData(model)

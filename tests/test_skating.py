@@ -117,7 +117,7 @@ def test_a_speed_law_sets_the_amplitude_of_the_forward_or_backward_push():
 
 
 def test_a_backward_law_alone_leaves_the_forward_push_as_without_a_law():
-    """amplitude_law_backward without amplitude_law (docs/tasks.md run 107): a backward push
+    """amplitude_law_backward without amplitude_law (research/log.md run 107): a backward push
     reads its law, every other push is the prior's own amplitude x ramp, bit for bit."""
     kw = dict(enabled=True, amplitude=0.2, tilt=0.2, thigh_share=0.0, full_speed=0.25)
     plain, back = GaitPriorCfg(**kw), GaitPriorCfg(**kw, amplitude_law_backward=LAW_BACK)
@@ -130,7 +130,7 @@ def test_a_backward_law_alone_leaves_the_forward_push_as_without_a_law():
 
 
 def test_an_added_law_equal_to_the_ramp_changes_nothing_and_a_larger_one_adds_its_excess():
-    """amplitude_law_adds (docs/tasks.md row 111): a foot keeps the prior's own amplitude x ramp
+    """amplitude_law_adds (research/log.md row 111): a foot keeps the prior's own amplitude x ramp
     of its whole push and the law adds what it gives beyond amplitude x ramp of the trunk's
     vx alone. A law equal to that ramp is then the prior without a law for every command and
     speed error (the larger-of rule is not: a sideways or turning push with some vx loses
@@ -157,7 +157,7 @@ def test_an_added_law_equal_to_the_ramp_changes_nothing_and_a_larger_one_adds_it
 
 
 def test_with_a_measured_speed_law_the_prior_alone_follows_the_command():
-    """scripts/prior_law.py's law (docs/tasks.md): open loop, no policy, the prior skates
+    """scripts/prior_law.py's law (research/log.md): open loop, no policy, the prior skates
     faster for a faster command (the prior without it pushes alike for every command)."""
     spec = registry.get_task(TASK)
     scen = tuple(evaluate.Scenario(f"vx{v}", ((0.0, (v, 0, 0)),), 6.0, 3.0) for v in (0.5, 1.5, -1.0))

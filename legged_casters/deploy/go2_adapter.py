@@ -1,5 +1,5 @@
 """The robot side of the bridge on a real Go2: Unitree's low-level DDS interface <-> our
-zenoh wire protocol (docs/deploy.md).
+zenoh wire protocol (docs/protocol.md).
 
     # on the robot's computer, or a PC on the robot's Ethernet (the Go2's sport mode off):
     python -m legged_casters.deploy.go2_adapter --network-interface eth0 --real-robot \\

@@ -1,5 +1,5 @@
 """What every robot side of the protocol does the same way (sim_robot, fake_go2,
-go2_adapter; docs/deploy.md "Writing a robot side"): take joint commands in, decide
+go2_adapter; docs/protocol.md "Writing a robot side"): take joint commands in, decide
 what to apply under the watchdog, run a fixed-rate loop, and print its status."""
 
 from __future__ import annotations

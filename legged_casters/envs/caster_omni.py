@@ -8,7 +8,7 @@ the privileged caster state (swivel axes, swivel angles and rates, trunk velocit
 
 Choices the paper leaves open, made here:
 * Control: physics dt 5 ms with solref 0.01 (measured safe for the stiff caster
-  contact, docs/caster_physics.md; the model file keeps 2 ms), decimation 4, so the
+  contact, docs/robot.md; the model file keeps 2 ms), decimation 4, so the
   policy runs at 50 Hz; action = offset from the nominal pose, scale 0.25 rad.
 * Table I writes some terms with the minus inside and a positive weight, others
   the other way round. Here every term returns a magnitude as defined and the
@@ -422,12 +422,12 @@ def _skate_rewards() -> RewardsCfg:
 
 
 def caster_omni_skate_cfg() -> CasterOmniCfg:
-    """The flat-ground skating configuration the default task builds on (docs/tasks.md has
+    """The flat-ground skating configuration the default task builds on (research/log.md has
     the measurements behind each change)."""
     cfg = CasterOmniCfg()
     cfg.sim.timestep = 0.005
     cfg.sim.decimation = 4
-    # The prior pushes for the speed error of the actor's own velocity estimate (docs/tasks.md,
+    # The prior pushes for the speed error of the actor's own velocity estimate (research/log.md,
     # "Speed feedback in the prior"; run 22): without it, it pushes as hard for 0.5 m/s as for 2.
     cfg.gait = GaitPriorCfg(
         enabled=True, frequency=2.0, amplitude=0.2, tilt=0.2, thigh_share=0.0, full_speed=0.25,
@@ -482,7 +482,7 @@ def caster_omni_paper_cfg() -> CasterOmniCfg:
 
 def caster_omni_skate_train_cfg() -> TrainCfg:
     cfg = TrainCfg(experiment_name="caster_omni", max_iterations=1000)
-    # Sized for the 2-core machines by measurement (scripts/bench_train.py, docs/training_speed.md): the
+    # Sized for the 2-core machines by measurement (scripts/bench_train.py, docs/training.md): the
     # velocity estimator reads the 420-value history, the actor's MLP only the current terms
     # and the estimate; the critic has the privileged state and skips the history.
     cfg.policy.actor_hidden_dims = (256, 128, 64)
@@ -498,7 +498,7 @@ def caster_omni_skate_train_cfg() -> TrainCfg:
     # pinned the adaptive learning rate at its 1e-5 floor for a whole run.
     cfg.algorithm.desired_kl = 0.1
     # 3 passes over each rollout instead of rsl_rl's 5: the update drops from 0.65 to 0.42 s of a
-    # 1.8 s iteration and 15-minute runs learn as much per minute (docs/training_speed.md).
+    # 1.8 s iteration and 15-minute runs learn as much per minute (docs/training.md).
     cfg.algorithm.num_learning_epochs = 3
     return cfg
 

@@ -15,7 +15,7 @@ class SimCfg:
     timestep: float | None = field(default=None, metadata={"min": 1e-4, "max": 0.01})
     """Physics step (s); None keeps the model's (2 ms). MuJoCo raises a contact's solref
     time constant to at least 2 x timestep; the env sets it so explicitly. 5 ms with
-    solref 0.01 was measured safe for the caster contact (docs/caster_physics.md)."""
+    solref 0.01 was measured safe for the caster contact (docs/robot.md)."""
     device: str = "auto"
     """Torch device of the env tensors; auto: cuda:0 for Warp on CUDA, else cpu."""
 

@@ -112,7 +112,7 @@ class GaitPriorCfg:
     amplitude and `amplitude` x ramp of its push without the trunk's vx. True: it keeps the
     prior's own `amplitude` x ramp of its whole push and the law adds what it gives beyond
     `amplitude` x ramp of the trunk's vx alone, so a law no larger than the ramp changes
-    nothing (docs/tasks.md row 111: on the shipped policy the larger-of rule alone, with a law
+    nothing (research/log.md row 111: on the shipped policy the larger-of rule alone, with a law
     equal to the ramp, changed vy +0.4 and added falls)."""
     tilt_backward: float | None = field(default=None, metadata={"min": 0.0})
     """Tilt for a foot whose push points backwards; None: `tilt`."""

@@ -2,7 +2,7 @@
 
 On casters the exploration noise itself propels and turns the robot: white noise on
 the joint targets, drawn anew every control step, is a fast leg oscillation, and the
-casters rectify oscillation into motion (docs/tasks.md: the stochastic actor turns
+casters rectify oscillation into motion (research/log.md: the stochastic actor turns
 where the deterministic one does not, and lowering the std takes the turn away).
 `CorrelatedGaussianDistribution` draws the noise from a first-order autoregressive
 process instead,
@@ -23,7 +23,7 @@ A share of the envs can also act without any exploration noise (`quiet_fraction`
 as the deployed actor does. On casters the deterministic actor can do something the noisy
 one never shows (stand still under a small command that the noise would have skated), and
 the velocity estimator, trained on the rollout, only learns what the rollout shows
-(docs/tasks.md, "Why it stands under +0.25 m/s"). For PPO these rows cost nothing but
+(research/log.md, "Why it stands under +0.25 m/s"). For PPO these rows cost nothing but
 their share of the batch: at a = mean the log-probability's gradient with respect to the
 mean is zero, and the critic learns their returns as any others.
 

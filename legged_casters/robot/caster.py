@@ -26,7 +26,7 @@ import mujoco
 class ContactParams:
     """Contact settings shared by the robot, the floor and the caster test rig.
 
-    Measured on the single-caster rig and the whole robot (docs/caster_physics.md):
+    Measured on the single-caster rig and the whole robot (docs/robot.md):
     MuJoCo's default contact is far too soft for a caster (the swivel's small
     effective mass makes the constraint soft, the caster creeps); a stiff solref and
     a high impratio hold the no-slip condition without a noslip solver (MuJoCo Warp

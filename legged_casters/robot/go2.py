@@ -28,7 +28,7 @@ UNITREE_LEG_ORDER: tuple[str, ...] = ("FR", "FL", "RR", "RL")
 """The order of the legs in Unitree's low-level messages (LowState/LowCmd motor_state,
 motor_cmd): motor index = 3 * position of the leg here + (hip 0, thigh 1, calf 2).
 Our order (LEGS) swaps left and right. Source: the LegID table of Unitree's SDK and
-its Go2 stand example (docs/deploy.md); not checked on a robot."""
+its Go2 stand example (docs/protocol.md); not checked on a robot."""
 
 UNITREE_MOTOR: dict[str, int] = {
     **{
@@ -73,7 +73,7 @@ MOTOR_ARMATURE = 0.01
 
 # --- driving wheels (robot "wheel") -----------------------------------------------------
 # We found no published wheel specification of Unitree's wheeled Go2 (Go2-W); these are
-# stated choices of the size of its tyres, see docs/tasks.md.
+# stated choices of the size of its tyres, see docs/robot.md.
 DRIVE_WHEEL_RADIUS = 0.09  # m
 DRIVE_WHEEL_WIDTH = 0.04  # m
 DRIVE_WHEEL_MASS = 0.6  # kg each: tyre, rim and hub motor

@@ -376,9 +376,9 @@ def fig9(out: Path, quick: bool, policy: str = DEFAULT_CASTER) -> Result:
         notes.append(
             "Where ours differs: the shipped caster policy was never asked for more than 1 m/s in training (its "
             "command curriculum, which may widen vx to 4 m/s, never did: linear tracking stayed below the 80 % "
-            "threshold), and it skates at about 0.9 m/s whatever it is told (docs/policies.md, evaluation table). The "
+            "threshold), and it skates at about 0.9 m/s whatever it is told (research/policies.md). The "
             "policy, not the simulator, is the gap to the paper's 4.1 m/s: the prior alone, its parameters "
-            'searched open loop, skates 3.5 m/s backwards (docs/tasks.md, "The robot\'s top speed, open loop").'
+            'searched open loop, skates 3.5 m/s backwards (docs/robot.md, "The robot\'s top speed, open loop").'
         )
     return Result(
         "fig9",

@@ -47,7 +47,7 @@ def _procs_arg(text: str) -> int | str:
 
 def resolve_procs(args: argparse.Namespace) -> int:
     """--procs auto: 2 processes where training runs on the CPU (device and backend) and this
-    process may use 2 or more cores (docs/training_speed.md measured 2 on 2 cores), else 1."""
+    process may use 2 or more cores (docs/training.md: 2 on 2 cores measured faster than 1), else 1."""
     if args.procs != "auto":
         return args.procs
     backend = resolve_backend(args.sim_backend)
@@ -463,7 +463,7 @@ def launch_procs(args: argparse.Namespace, argv: list[str], default_log_root: Pa
         raise UsageError(
             f"--procs {args.procs} runs CPU processes (device cpu, backend cpu), not device {device} with the "
             f"{backend} backend: use --procs 1 or auto; for several GPUs start torchrun yourself "
-            "(README, 'Several GPUs')"
+            "(docs/training.md, 'On a GPU')"
         )
     cores = usable_cpus()
     if args.procs > cores:
@@ -500,7 +500,7 @@ def pin_to_core(device: str) -> None:
     """A CPU process of a distributed run takes one core of those it may use (by its local
     rank) and one torch thread, so that the processes do not fight over cores: two such
     processes on 2 cores simulate and learn faster than one process on both
-    (docs/training_speed.md)."""
+    (docs/training.md)."""
     local = int(os.environ.get("LOCAL_RANK", "0"))
     local_world = int(os.environ.get("LOCAL_WORLD_SIZE", os.environ.get("WORLD_SIZE", "1")))
     if device != "cpu" or local_world <= 1 or not hasattr(os, "sched_setaffinity"):
