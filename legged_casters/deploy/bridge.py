@@ -722,6 +722,11 @@ def main(argv: list[str] | None = None) -> int:
         args.policy = str(SHIPPED_POLICY)
         print(f"bridge: no --policy given: using the shipped policy {args.policy}")
     try:
+        transport.check_options(args)  # endpoints and --secure's files, before the slow start-up
+    except transport.SessionError as err:
+        print(f"bridge: error: {err}", file=sys.stderr)
+        return 2
+    try:
         meta = load_meta(args.policy)  # fails here, before any zenoh traffic, on an unusable export
     except (PolicyFormatError, FileNotFoundError) as e:
         print(f"bridge: error: {e}", file=sys.stderr)
