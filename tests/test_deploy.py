@@ -237,6 +237,39 @@ def test_reanchor_accepts_the_next_message_whatever_its_seq():
     f.check(P.Header(epoch=2, seq=3))
 
 
+def test_operator_filter_accepts_each_seq_once_and_follows_a_jump_only_when_continued():
+    """The operator stream: a jump within the window leaves the real stream behind it
+    accepted (each seq once); a jump further ahead, or another epoch, is held until a
+    second message continues it; replays and replaced epochs are rejected."""
+    H = P.Header
+    f = P.OperatorFilter(window=8)
+    f.check(H(1, 10))  # the first epoch is accepted at once
+    f.check(H(1, 18))  # 8 ahead: accepted
+    for seq in (11, 12, 17):  # the stream it jumped over: accepted, once each
+        f.check(H(1, seq))
+    for seq, why in ((12, "accepted before"), (18, "accepted before"), (17, "accepted before"), (10, "behind")):
+        with pytest.raises(P.ProtocolError, match=why):
+            f.check(H(1, seq))
+    for far in (27, 0xFFFFFFFF, 1000):  # one message far ahead is held, and changes nothing
+        with pytest.raises(P.ProtocolError, match="held"):
+            f.check(H(1, far))
+        assert f.last_seq == 18
+    f.check(H(1, 19))  # the real stream goes on, and drops the held jump:
+    with pytest.raises(P.ProtocolError, match="held"):
+        f.check(H(1, 1001))  # a second stray message later does not continue the first
+    f.check(H(1, 20))
+    with pytest.raises(P.ProtocolError, match="new epoch"):
+        f.check(H(2, 0))  # another epoch: held
+    f.check(H(2, 1))  # the new epoch continues: followed (a restarted operator)
+    assert (f.epoch, f.last_seq) == (2, 1)
+    with pytest.raises(P.ProtocolError, match="replaced"):
+        f.check(H(1, 21))
+    with pytest.raises(P.ProtocolError, match="held"):
+        f.check(H(2, 100))  # a real gap of more than the window ...
+    f.check(H(2, 101))  # ... is followed from the second message after it
+    assert f.last_seq == 101
+
+
 def test_zenoh_config_file_pass_through(tmp_path):
     port = free_port()
     f = tmp_path / "zenoh.json5"
@@ -816,6 +849,79 @@ def test_stop_latches_until_reset(tmp_path, realtime):
         assert wait_for(lambda: b.state is P.BridgeState.RUNNING, 2.0)
         modes = rec.modes()
         assert P.CommandMode.STANDUP in modes[n_stop:]  # reset stands up again before the policy runs
+    finally:
+        robot.stop()
+        b.stop()
+
+
+def test_after_any_single_operator_message_the_next_stop_stops(tmp_path, realtime):
+    """No single operator message (any seq, any epoch, motion, reset or stop) can make the
+    same operator's next stop be dropped: the stop damps the robot within 100 ms, and the
+    operator's reset and motion commands after it are accepted too (nothing poisoned).
+    Each case ends with a window of the operator's own messages, so that the next case's
+    injected message is again the only one the stream has not passed."""
+    rec = Recorder()
+    b = _bridge(tmp_path, rec)
+    s = P.Sender()
+    b.start()
+    robot = FakeRobot(b.on_state)
+    W = P.OperatorFilter.WINDOW
+    headers = {  # the injected message's header, from the operator's next seq s.seq
+        "seq +1000": lambda: P.Header(s.epoch, s.seq - 1 + 1000),
+        "seq +window": lambda: P.Header(s.epoch, s.seq - 1 + W),
+        "seq +window+1": lambda: P.Header(s.epoch, s.seq + W),
+        "seq +65536": lambda: P.Header(s.epoch, s.seq - 1 + 65536),
+        "seq 0xFFFFFFFF": lambda: P.Header(s.epoch, 0xFFFFFFFF),
+        "the operator's next seq": lambda: P.Header(s.epoch, s.seq),
+        "a replay of the last seq": lambda: P.Header(s.epoch, s.seq - 1),
+        "seq 0": lambda: P.Header(s.epoch, 0),
+        "new epoch, seq 0": lambda: P.Header(P.new_epoch(), 0),
+        "new epoch, seq 0xFFFFFFFF": lambda: P.Header(P.new_epoch(), 0xFFFFFFFF),
+    }
+    kinds = {"motion": (1.0, 0), "reset": (0.0, P.OP_RESET), "stop": (0.0, P.OP_STOP)}
+    try:
+        assert wait_for(lambda: b.state is P.BridgeState.RUNNING, 2.0)
+        for _ in range(3):
+            b.on_operator(op(s, vx=0.1))
+        for name, header in headers.items():
+            for kind, (vx, flags) in kinds.items():
+                case = f"{kind} with {name}"
+                h = header()
+                b.on_operator(P.OperatorCommand(vx, 0.0, 0.0, P.PropulsionMode.FOUR_WHEEL, flags, h).encode())
+                if flags & P.OP_STOP:  # a stop from anywhere stops; the operator's reset still releases it
+                    assert b.state is P.BridgeState.STOPPED, case
+                    b.on_operator(op(s, flags=P.OP_RESET))
+                    if name == "the operator's next seq":  # the injected stop took this reset's seq: once more
+                        assert b.state is P.BridgeState.STOPPED, case
+                        b.on_operator(op(s, flags=P.OP_RESET))
+                    assert wait_for(lambda: b.state is P.BridgeState.RUNNING, 2.0), case
+                assert b.state is P.BridgeState.RUNNING, case
+                n = len(rec.cmds)
+                t = time.monotonic()
+                b.on_operator(op(s, flags=P.OP_STOP))
+                assert wait_for(
+                    lambda n=n: (
+                        b.state is P.BridgeState.STOPPED
+                        and any(c.mode == P.CommandMode.DAMPING for _, c in rec.cmds[n:])
+                    ),
+                    0.1,
+                ), case
+                assert time.monotonic() - t < 0.1, case
+                b.on_operator(op(s, flags=P.OP_RESET))
+                assert wait_for(lambda: b.state is P.BridgeState.RUNNING, 2.0), case
+                got = b.received_operator
+                for _ in range(W):  # motion commands are accepted again; the stream passes the injected seq
+                    b.on_operator(op(s, vx=0.3))
+                # at most one lost: the real message whose seq an injected one took
+                assert b.received_operator - got >= W - 1 and b.commands[0] == pytest.approx(0.3), case
+        assert b.operator_filter.epoch == s.epoch
+        # a stop naming a propulsion mode the export lacks still stops (a motion command is refused)
+        del b.mode_masks[P.PropulsionMode.REAR_WHEEL]
+        rejected = b.rejected["out_of_range"]
+        b.on_operator(op(s, vx=0.3, prop=P.PropulsionMode.REAR_WHEEL))
+        assert b.rejected["out_of_range"] == rejected + 1 and b.state is P.BridgeState.RUNNING
+        b.on_operator(op(s, flags=P.OP_STOP, prop=P.PropulsionMode.REAR_WHEEL))
+        assert b.state is P.BridgeState.STOPPED and b.rejected["out_of_range"] == rejected + 1
     finally:
         robot.stop()
         b.stop()

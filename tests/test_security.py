@@ -154,6 +154,112 @@ def test_tool_cli_names_the_certs_command(tmp_path):
     assert "operator.pem" in out.stderr and "python -m legged_casters.deploy.certs" in out.stderr, out.stderr
 
 
+# --- broken certificate material -----------------------------------------------------------
+def _encrypted(key_file: Path) -> bytes:
+    from cryptography.hazmat.primitives import serialization as ser
+
+    key = ser.load_pem_private_key(key_file.read_bytes(), password=None)
+    return key.private_bytes(ser.Encoding.PEM, ser.PrivateFormat.PKCS8, ser.BestAvailableEncryption(b"secret"))
+
+
+BROKEN = {  # case: (the file it breaks, what the one-line error says about it)
+    "empty key": ("key", "is empty"),
+    "garbage key": ("key", "holds no PEM private key"),
+    "another certificate's key": ("key", "is not the key of"),
+    "encrypted key": ("key", "is encrypted"),
+    "key is a folder": ("key", "is a folder, not a file"),
+    "empty ca.pem": ("ca", "is empty"),
+    "garbage ca.pem": ("ca", "holds no PEM certificate"),
+    "leaf certificate as ca.pem": ("ca", "is not a CA certificate"),
+    "damaged certificate": ("cert", "is not a PEM certificate"),
+    "certificate of another CA": ("cert", "is not signed by the CA"),
+}
+
+
+def broken_dir(pki: dict[str, Path], tmp: Path, role: str, case: str) -> tuple[Path, Path]:
+    """A copy of our CA and role's files with one thing broken: (directory, broken file)."""
+    d = tmp / "broken"
+    d.mkdir(parents=True)
+    ours = pki["ours"]
+    ca, cert, key = d / certs.CA_CERT, certs.cert_path(d, role), certs.key_path(d, role)
+    for f in (ca, cert, key):
+        shutil.copy(ours / f.name, f)
+    other = next(r for r in certs.ROLES if r != role)
+    if case == "empty key":
+        key.write_bytes(b"")
+    elif case == "garbage key":
+        key.write_bytes(b"\x00\x13 not a key at all\n")
+    elif case == "another certificate's key":
+        shutil.copy(certs.key_path(ours, other), key)
+    elif case == "encrypted key":
+        key.write_bytes(_encrypted(certs.key_path(ours, role)))
+    elif case == "key is a folder":
+        key.unlink()
+        key.mkdir()
+    elif case == "empty ca.pem":
+        ca.write_bytes(b"")
+    elif case == "garbage ca.pem":
+        ca.write_bytes(b"ca\n")
+    elif case == "leaf certificate as ca.pem":
+        shutil.copy(certs.cert_path(ours, other), ca)
+    elif case == "damaged certificate":
+        text = cert.read_text().splitlines()
+        cert.write_text("\n".join(text[:1] + ["AAAA" + line[4:] for line in text[1:-1]] + text[-1:]) + "\n")
+    elif case == "certificate of another CA":
+        shutil.copy(certs.cert_path(pki["foreign"], role), cert)
+        shutil.copy(certs.key_path(pki["foreign"], role), key)
+    else:
+        raise ValueError(case)
+    return d, {"ca": ca, "cert": cert, "key": key}[BROKEN[case][0]]
+
+
+@pytest.mark.parametrize("case", list(BROKEN))
+def test_broken_certificate_material_is_named_at_start(pki, tmp_path, case):
+    """Every file is parsed and checked before a session opens: one line naming the file,
+    what is wrong and the fix. Control: the same directory with the file intact passes."""
+    for role in ("bridge", "robot"):
+        d, bad = broken_dir(pki, tmp_path / role, role, case)
+        args = _open_args(role, "--secure", str(d), "--connect", f"tls/127.0.0.1:{free_port()}", "--namespace", NS)
+        with pytest.raises(transport.SessionError) as err:
+            transport.check_options(args)
+        msg = str(err.value)
+        assert "\n" not in msg and f"{bad} {BROKEN[case][1]}" in msg, msg
+        assert "python -m legged_casters.deploy.certs" in msg or "copy" in msg, msg
+    ok = _open_args("bridge", "--secure", str(pki["ours"]), "--connect", "tls/127.0.0.1:1", "--namespace", NS)
+    transport.check_options(ok)
+
+
+@pytest.mark.parametrize(
+    ("tool", "role", "case", "endpoint"),
+    [
+        ("bridge", "bridge", "another certificate's key", "--connect"),
+        ("bridge", "bridge", "empty ca.pem", "--connect"),
+        ("bridge", "bridge", "leaf certificate as ca.pem", "--listen"),
+        ("bridge", "bridge", "key is a folder", "--listen"),
+        ("sim_robot", "robot", "garbage key", "--listen"),
+        ("go2_adapter", "robot", "certificate of another CA", "--connect"),
+        ("teleop", "operator", "encrypted key", "--connect"),
+    ],
+)
+def test_tools_exit_2_at_once_on_broken_certificate_material(pki, tmp_path, tool, role, case, endpoint):
+    """The bridge with --connect (its documented role) or --listen, sim_robot, the Go2
+    adapter and teleop: exit 2 at start with one line on stderr, not a wait until
+    --duration or zenoh's own message."""
+    d, bad = broken_dir(pki, tmp_path, role, case)
+    extra = {"bridge": ["--summary-every", "0"], "go2_adapter": ["--network-interface", "lo"]}.get(tool, [])
+    t0 = time.monotonic()
+    out = subprocess.run(
+        [sys.executable, "-m", f"legged_casters.deploy.{tool}", "--secure", str(d), "--namespace", NS,
+         endpoint, f"tls/127.0.0.1:{free_port()}", "--duration", "30", *extra],
+        cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)}, capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    elapsed = time.monotonic() - t0
+    lines = out.stderr.strip().splitlines()
+    assert out.returncode == 2 and len(lines) == 1, out.stderr
+    assert lines[0].startswith(f"{tool}: error: --secure {d}: {bad} {BROKEN[case][1]}"), lines[0]
+    assert elapsed < 10.0, elapsed  # about 0.5-1 s on a loaded 2-core machine, most of it Python's imports
+
+
 # --- who may connect -----------------------------------------------------------------------
 @pytest.mark.parametrize("case", ["plain_tcp", "tls_without_certificate", "foreign_ca", "expired", "valid"])
 def test_only_a_current_certificate_of_our_ca_connects(pki, case):

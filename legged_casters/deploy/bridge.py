@@ -40,6 +40,10 @@ policy.pt). The control loop and its safety rules (docs/deploy.md has the detail
   ``state_window`` seqs (60 with the default staleness limit); entering WAITING (an
   operator reset) re-anchors the sequence, so the next valid state is accepted
   whatever its seq.
+* Operator stream (protocol.OperatorFilter): a valid stop is acted on whatever its seq
+  or epoch; other operator messages are checked against a 64-seq window that accepts
+  each seq once and follows a jump further ahead, or a new epoch, only when a second
+  message continues it, so no single message can lock the operator out.
 """
 
 from __future__ import annotations
@@ -163,7 +167,7 @@ class Bridge:
         self._running = False
         self._thread: threading.Thread | None = None
         self.state_filter = P.SequenceFilter(window=state_window(self.max_state_age))
-        self.operator_filter = P.SequenceFilter()
+        self.operator_filter = P.OperatorFilter()
         self.cmd_sender = P.Sender()
         self.status_sender = P.Sender()
 
@@ -253,6 +257,13 @@ class Bridge:
         with self._cv:
             try:
                 msg = P.OperatorCommand.decode(payload)
+            except P.ProtocolError as e:
+                self._reject(e)
+                return
+            if msg.stop:
+                self._on_stop(msg, now)
+                return
+            try:
                 mask = self.mode_masks.get(P.PropulsionMode(msg.propulsion))
                 if mask is None:
                     raise P.ProtocolError(
@@ -263,16 +274,33 @@ class Bridge:
                 self._reject(e)
                 return
             self.received_operator += 1
-            lim = np.asarray(self.cfg.max_command)
-            self.commands = np.clip([msg.vx, msg.vy, msg.wz], -lim, lim)
-            self.mode_mask = mask
-            self._operator_arrival = now
-            if msg.stop:
-                if self.state is not P.BridgeState.STOPPED:
-                    self._enter(P.BridgeState.STOPPED, P.Fault.OPERATOR_STOP)
-            elif msg.reset and self.state in (P.BridgeState.STOPPED, P.BridgeState.DAMPING):
+            self._take_command(msg, mask, now)
+            if msg.reset and self.state in (P.BridgeState.STOPPED, P.BridgeState.DAMPING):
                 self._enter(P.BridgeState.WAITING)  # the next state starts a new stand-up
             self._cv.notify()
+
+    def _take_command(self, msg: P.OperatorCommand, mask, now: float) -> None:
+        lim = np.asarray(self.cfg.max_command)
+        self.commands = np.clip([msg.vx, msg.vy, msg.wz], -lim, lim)
+        self.mode_mask = mask
+        self._operator_arrival = now
+
+    def _on_stop(self, msg: P.OperatorCommand, now: float) -> None:
+        """A valid stop is acted on whatever its sequence number, epoch or propulsion mode:
+        stopping is always safe, so no earlier message can make a stop be dropped. Only a
+        stop that is also in order (and names a propulsion mode of the export) updates the
+        velocity command and the sequence filter's state."""
+        self.received_operator += 1
+        mask = self.mode_masks.get(P.PropulsionMode(msg.propulsion))
+        try:
+            self.operator_filter.check(msg.header)
+            if mask is not None:
+                self._take_command(msg, mask, now)
+        except P.ProtocolError:
+            pass  # out of order: stop anyway, take nothing else from it
+        if self.state is not P.BridgeState.STOPPED:
+            self._enter(P.BridgeState.STOPPED, P.Fault.OPERATOR_STOP)
+        self._cv.notify()
 
     # --- outputs ------------------------------------------------------------------------
     def _send_command(self, mode: P.CommandMode, q, kp, kd, state_seq: int, dq=None) -> None:
@@ -693,6 +721,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.policy is None:
         args.policy = str(SHIPPED_POLICY)
         print(f"bridge: no --policy given: using the shipped policy {args.policy}")
+    try:
+        transport.check_options(args)  # endpoints and --secure's files, before the slow start-up
+    except transport.SessionError as err:
+        print(f"bridge: error: {err}", file=sys.stderr)
+        return 2
     try:
         meta = load_meta(args.policy)  # fails here, before any zenoh traffic, on an unusable export
     except (PolicyFormatError, FileNotFoundError) as e:

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cryptography import x509
+from cryptography.exceptions import InvalidSignature, UnsupportedAlgorithm
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
@@ -200,6 +201,128 @@ def describe(path: str | Path) -> tuple[str, dt.datetime, dt.datetime]:
     cert = x509.load_pem_x509_certificate(Path(path).read_bytes())
     cn = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
     return (str(cn[0].value) if cn else ""), cert.not_valid_before_utc, cert.not_valid_after_utc
+
+
+class MaterialError(ValueError):
+    """A certificate or key file that TLS cannot use; the message names the file, what is
+    wrong with it and how to fix it, in one line."""
+
+
+def _read(path: Path, what: str, fix: str) -> bytes:
+    if path.is_dir():
+        raise MaterialError(f"{path} is a folder, not a file ({what} goes there); remove it, then {fix}")
+    try:
+        data = path.read_bytes()
+    except PermissionError:
+        raise MaterialError(f"{path} cannot be read by this user; give it read access (chmod/chown)") from None
+    except OSError as err:
+        raise MaterialError(f"{path} cannot be read ({err.strerror}); {fix}") from None
+    if not data.strip():
+        raise MaterialError(f"{path} is empty; {fix}")
+    return data
+
+
+def _certificates(path: Path, data: bytes, fix: str) -> list[x509.Certificate]:
+    if b"-----BEGIN CERTIFICATE-----" not in data:
+        raise MaterialError(f"{path} holds no PEM certificate (no -----BEGIN CERTIFICATE----- block); {fix}")
+    try:
+        return x509.load_pem_x509_certificates(data)
+    except ValueError:
+        raise MaterialError(f"{path}: its PEM certificate does not parse (damaged?); {fix}") from None
+
+
+def _cn(cert: x509.Certificate) -> str:
+    cn = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+    return str(cn[0].value) if cn else cert.subject.rfc4514_string()
+
+
+def _is_ca(cert: x509.Certificate) -> bool:
+    try:
+        if not cert.extensions.get_extension_for_class(x509.BasicConstraints).value.ca:
+            return False
+    except x509.ExtensionNotFound:
+        return False
+    try:
+        return cert.extensions.get_extension_for_class(x509.KeyUsage).value.key_cert_sign
+    except x509.ExtensionNotFound:
+        return True
+
+
+def _issued_by(cert: x509.Certificate, ca: x509.Certificate) -> bool:
+    try:
+        cert.verify_directly_issued_by(ca)
+    except (ValueError, TypeError, InvalidSignature):
+        return False
+    return True
+
+
+def _spki(public_key) -> bytes:
+    return public_key.public_bytes(serialization.Encoding.DER, serialization.PublicFormat.SubjectPublicKeyInfo)
+
+
+def check_material(directory: str | Path, role: str, namespace: str, now: dt.datetime | None = None) -> None:
+    """Check the TLS material of ``role`` in ``directory`` before anything uses it:
+    ``ca.pem`` is a current CA certificate, ``<role>.pem`` a current certificate for
+    ``<role>.<namespace>`` signed by it, ``<role>.key`` an unencrypted private key that
+    belongs to ``<role>.pem``. Raises MaterialError with the file, the fault and the fix in
+    one line (missing files are the caller's to report: they get the copy instructions)."""
+    d = Path(directory)
+    make = f"python -m legged_casters.deploy.certs {d}"
+    reissue = f"re-issue it: `{make} --roles {role} --force --namespace {namespace}`"
+    ca_path, cert_path_, key_path_ = d / CA_CERT, cert_path(d, role), key_path(d, role)
+    copy_ca = f"copy the ca.pem that `python -m legged_casters.deploy.certs` wrote with {role}.pem (their CA)"
+    now = now or dt.datetime.now(dt.timezone.utc)
+
+    ca_all = _certificates(ca_path, _read(ca_path, "the CA certificate ca.pem", copy_ca), copy_ca)
+    cas = [c for c in ca_all if _is_ca(c)]
+    if not cas:
+        raise MaterialError(
+            f"{ca_path} is not a CA certificate (it is {_cn(ca_all[0])!r}, which may not sign certificates: a "
+            f"role's certificate?); {copy_ca}, not a role's .pem"
+        )
+
+    cert_data = _read(cert_path_, f"this {role}'s certificate {role}.pem", reissue)
+    if b"-----BEGIN CERTIFICATE-----" not in cert_data:
+        raise MaterialError(f"{cert_path_} is not a PEM certificate (no -----BEGIN CERTIFICATE----- block); {reissue}")
+    try:
+        cert = x509.load_pem_x509_certificate(cert_data)
+    except ValueError:
+        raise MaterialError(f"{cert_path_} is not a PEM certificate (it does not parse); {reissue}") from None
+    cn, want = _cn(cert), common_name(role, namespace)
+    if cn != want:
+        raise MaterialError(
+            f"{cert_path_} is for {cn!r}, but this {role} on --namespace {namespace} needs {want!r}: "
+            f"`{make} --namespace {namespace}` (or use the --namespace it was made for)"
+        )
+    start, end = cert.not_valid_before_utc, cert.not_valid_after_utc
+    if not start <= now <= end:
+        when = f"expired on {end:%Y-%m-%d %H:%M} UTC" if now > end else f"is valid only from {start:%Y-%m-%d %H:%M} UTC"
+        raise MaterialError(f"{cert_path_} {when}; {reissue}")
+    issuers = [c for c in cas if _issued_by(cert, c)]
+    if not issuers:
+        raise MaterialError(
+            f"{cert_path_} is not signed by the CA in {ca_path} ({_cn(cas[0])!r}); {copy_ca}, or {reissue}"
+        )
+    ca = issuers[0]
+    if not ca.not_valid_before_utc <= now <= ca.not_valid_after_utc:
+        raise MaterialError(
+            f"{ca_path} (the CA) is valid from {ca.not_valid_before_utc:%Y-%m-%d %H:%M} to "
+            f"{ca.not_valid_after_utc:%Y-%m-%d %H:%M} UTC, not now; make a new CA and certificates: "
+            f"`python -m legged_casters.deploy.certs NEWDIR --namespace {namespace}`"
+        )
+
+    pair = f"copy the {role}.key made with this {role}.pem, or {reissue} (both files)"
+    key_data = _read(key_path_, f"this {role}'s private key {role}.key", pair)
+    if b"PRIVATE KEY-----" not in key_data:
+        raise MaterialError(f"{key_path_} holds no PEM private key (no -----BEGIN ... PRIVATE KEY----- block); {pair}")
+    try:
+        key = serialization.load_pem_private_key(key_data, password=None)
+    except TypeError:
+        raise MaterialError(f"{key_path_} is encrypted, and TLS here needs an unencrypted key; {reissue}") from None
+    except (ValueError, UnsupportedAlgorithm):
+        raise MaterialError(f"{key_path_}: its PEM private key does not parse (damaged?); {pair}") from None
+    if _spki(key.public_key()) != _spki(cert.public_key()):
+        raise MaterialError(f"{key_path_} is not the key of {cert_path_} (it belongs to another certificate); {pair}")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -124,8 +124,10 @@ def main(argv: list[str] | None = None) -> int:
         )
         return 2
     try:
+        if args.listen or args.connect:
+            transport.check_options(args)  # endpoints and --secure's files, before the SDK starts
         sdk = unitree.load_sdk()
-    except unitree.SdkUnavailable as err:
+    except (unitree.SdkUnavailable, transport.SessionError) as err:
         print(f"fake_go2: error: {err}", file=sys.stderr)
         return 2
     transport.stop_on_signals()  # also without a zenoh session (whose opening would install them)

@@ -185,6 +185,7 @@ def main(argv: list[str] | None = None) -> int:
         print("go2_adapter: error: --cmd-rate must be a positive number of messages per second", file=sys.stderr)
         return 2
     try:
+        transport.check_options(args)  # endpoints and --secure's files, before the SDK starts
         sdk = unitree.load_sdk()
         session = transport.open_session(args)
     except (unitree.SdkUnavailable, transport.SessionError) as err:

@@ -31,7 +31,8 @@ Decoding checks the exact length, magic, version and type, that every float is
 finite and that the values are in range (pad bytes are written as zeros and never
 read); a failure raises :class:`ProtocolError` whose ``reason`` is one of
 :data:`REJECT_REASONS`. :class:`SequenceFilter` rejects replayed and out-of-order
-messages. Nothing here touches zenoh.
+messages; :class:`OperatorFilter` does the same for the operator stream without letting
+one message lock the operator out. Nothing here touches zenoh.
 """
 
 from __future__ import annotations
@@ -497,6 +498,82 @@ class SequenceFilter:
             self.epoch = h.epoch
         self.last_seq = h.seq
         self._anchor = False
+
+
+class OperatorFilter:
+    """The operator stream's sequence rule: replays are rejected, but no single message,
+    whatever its epoch and seq, can lock the operator's later messages out.
+
+    Within the current epoch a message up to `window` seqs ahead of the highest accepted
+    one is accepted and becomes the highest; one fewer than `window` behind it is
+    accepted once if that seq has not been accepted before (a bitmap of the last `window`
+    seqs, as in the IPsec / DTLS anti-replay window). So a message that jumped ahead by up
+    to `window` leaves the real stream behind it accepted, and the real stream passes it
+    within `window` messages. Anything older, or seen before, is rejected (a replay).
+
+    A message further ahead, or from another epoch, is not accepted on its own: it is
+    held as a candidate, and the stream moves to it only when the next message that is
+    not accepted continues it (same epoch, seq up to `window` past the candidate's); an
+    accepted message of the current stream in between drops the candidate. A restarted
+    operator (a new epoch) or one whose stream lost more than `window` messages is then
+    followed from its second message; a single corrupt, forged or replayed message
+    changes nothing the real stream depends on. Epochs that were replaced stay rejected.
+    The first epoch the filter sees is accepted at once.
+
+    Stops do not depend on this filter: the bridge acts on every valid stop, in order or
+    not (stopping is always safe)."""
+
+    WINDOW = 64
+
+    def __init__(self, window: int = WINDOW, max_retired: int = 64):
+        if window < 1:
+            raise ValueError(f"window must be >= 1, got {window}")
+        self.window = window
+        self.epoch: int | None = None
+        self.last_seq = -1
+        self._seen = 0  # bit k: seq last_seq - k was accepted (k < window)
+        self._candidate: tuple[int, int] | None = None
+        self._retired: list[int] = []
+        self._max_retired = max_retired
+
+    def _adopt(self, h: Header) -> None:
+        if self.epoch is not None and h.epoch != self.epoch:
+            self._retired.append(self.epoch)
+            del self._retired[: -self._max_retired]
+        self.epoch, self.last_seq, self._seen = h.epoch, h.seq, 1
+        self._candidate = None
+
+    def check(self, h: Header) -> None:
+        """Raise ProtocolError('out_of_order') or record h as accepted."""
+        if self.epoch is None:
+            self._adopt(h)
+            return
+        if h.epoch == self.epoch:
+            d = h.seq - self.last_seq
+            if 0 < d <= self.window:
+                self._seen = ((self._seen << d) | 1) & ((1 << self.window) - 1)
+                self.last_seq = h.seq
+                self._candidate = None  # the stream goes on where it was: forget a held jump
+                return
+            if -self.window < d <= 0:
+                if (self._seen >> -d) & 1:
+                    raise ProtocolError("out_of_order", f"seq {h.seq} was accepted before (a replay)")
+                self._seen |= 1 << -d
+                self._candidate = None
+                return
+            if d <= -self.window:
+                raise ProtocolError(
+                    "out_of_order", f"seq {h.seq} is {self.window} or more behind {self.last_seq} (a replay)"
+                )
+        elif h.epoch in self._retired:
+            raise ProtocolError("out_of_order", f"epoch {h.epoch:#x} was replaced by a newer sender")
+        c = self._candidate
+        if c is not None and c[0] == h.epoch and 0 < h.seq - c[1] <= self.window:
+            self._adopt(h)  # a second message continues the jump: follow the stream there
+            return
+        self._candidate = (h.epoch, h.seq)
+        where = "a new epoch" if h.epoch != self.epoch else f"more than {self.window} past {self.last_seq}"
+        raise ProtocolError("out_of_order", f"seq {h.seq} is {where}: held until the next message continues it")
 
 
 class Sender:

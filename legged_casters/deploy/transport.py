@@ -16,7 +16,6 @@ certificate put only its own keys (:func:`access_control`).
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import gc
 import json
 import os
@@ -126,37 +125,25 @@ def access_control(namespace: str) -> dict:
 def secure_settings(directory: str | Path, role: str, namespace: str) -> dict[str, object]:
     """The zenoh settings (path -> value) of a secured node: mutual TLS with the role's
     certificate from ``directory``, scouting off, :func:`access_control`. Raises
-    SessionError naming the fix when a file is missing, expired or for another role or
-    namespace."""
+    SessionError naming the file and the fix when a file is missing or unusable
+    (:func:`certs.check_material`: unreadable, empty, not PEM, a key that is not the
+    certificate's, a certificate not signed by ``ca.pem`` or not a CA as ``ca.pem``,
+    expired, for another role or namespace)."""
     d = Path(directory)
     make = f"python -m legged_casters.deploy.certs {d}"
     if role not in certs.ROLES:
         raise ValueError(f"role must be one of {certs.ROLES}, got {role!r}")
     files = {"ca": d / certs.CA_CERT, "cert": certs.cert_path(d, role), "key": certs.key_path(d, role)}
-    missing = [str(f) for f in files.values() if not f.is_file()]
+    missing = [str(f) for f in files.values() if not f.exists()]
     if missing:
         raise SessionError(
             f"--secure {d}: {', '.join(missing)} missing; make the certificates with `{make}` and copy ca.pem, "
             f"{role}.pem and {role}.key to this machine"
         )
     try:
-        cn, start, end = certs.describe(files["cert"])
-    except ValueError as err:
-        msg = f"--secure {d}: {files['cert']} is not a PEM certificate ({err}); re-issue it: `{make}`"
-        raise SessionError(msg) from None
-    want = certs.common_name(role, namespace)
-    if cn != want:
-        raise SessionError(
-            f"--secure {d}: {files['cert']} is for {cn!r}, but this {role} on --namespace {namespace} needs {want!r}: "
-            f"`{make} --namespace {namespace}` (or use the --namespace it was made for)"
-        )
-    now = dt.datetime.now(dt.timezone.utc)
-    if not start <= now <= end:
-        when = f"expired on {end:%Y-%m-%d %H:%M} UTC" if now > end else f"is valid only from {start:%Y-%m-%d %H:%M} UTC"
-        raise SessionError(
-            f"--secure {d}: {files['cert']} {when}; re-issue it: `{make} --roles {role} --force "
-            f"--namespace {namespace}`"
-        )
+        certs.check_material(d, role, namespace)
+    except certs.MaterialError as err:
+        raise SessionError(f"--secure {d}: {err}") from None
     tls = "transport/link/tls/"
     return {
         tls + "root_ca_certificate": str(files["ca"]),
@@ -277,6 +264,19 @@ def arm_signals() -> None:
     if _signals["pending"]:
         _signals["pending"] = False
         raise KeyboardInterrupt
+
+
+def check_options(args: argparse.Namespace) -> None:
+    """The zenoh options' checks that need no session: endpoints and, with ``--secure``,
+    every certificate and key file (:func:`secure_settings`). A tool calls it first, so
+    that a mistake stops it at once, before its slow start-up work; ``open_session``
+    checks the same again. Raises SessionError."""
+    check_endpoints("--listen", args.listen)
+    check_endpoints("--connect", args.connect)
+    if getattr(args, "secure", None) is not None:
+        check_secure_endpoints("--listen", args.listen)
+        check_secure_endpoints("--connect", args.connect)
+        secure_settings(args.secure, args.secure_role, args.namespace)
 
 
 def open_session(args: argparse.Namespace) -> zenoh.Session:
