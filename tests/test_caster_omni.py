@@ -233,7 +233,7 @@ def test_sim2sim_conditions_keep_the_control_period():
 
 def test_sim2sim_tolerance_and_seeds():
     """--seeds: parsed as lists and ranges; the falls table sums every seed; the tolerance
-    table (issue 23's bar) takes the verdict's error checks only, m/s and rad/s apart, and
+    table (the robot-clock bar) takes the verdict's error checks only, m/s and rad/s apart, and
     says no for a change beyond its bound or for more falls over the seeds."""
     from legged_casters.tools import evaluate as E
     from legged_casters.tools.common import UsageError
@@ -293,7 +293,7 @@ def test_robot_clock_ranking_puts_falls_at_the_training_conditions_first():
     order = [r["file"] for r in sorted(rows, key=E._robot_clock_key)]
     assert order == ["upright_in_more_checks.pt", "upright_in.pt", "upright_out.pt", "steady_faller.pt"]
     table = E.format_robot_clock_ranking(rows, 5).splitlines()
-    assert table[0].startswith("issue 23's bar: every error check within 0.05 m/s") and "(5 seeds)" in table[0]
+    assert table[0].startswith("the robot-clock bar: every error check within 0.05 m/s") and "(5 seeds)" in table[0]
     assert "2 ms physics: largest change, m/s; rad/s: within" in table[1]
     assert table[3] == (
         "| 1 | upright_in_more_checks.pt | 120 | 10/16 | 0 / 0 / 0 | +0.010 (vx +0.5); +0.020 (wz +0.8): yes | "

@@ -524,7 +524,7 @@ def test_viewer_runs_under_a_virtual_display(exported, tmp_path):
     assert (tmp_path / "policy_steps_velocity.png").is_file() and not list(tmp_path.glob("*.mp4"))
 
 
-# --- issue 14: rough edges a new user hit ------------------------------------------------------------------
+# --- rough edges a new user hit ------------------------------------------------------------------
 def test_play_and_evaluate_take_a_training_checkpoint_as_policy(run, tmp_path):
     """A training checkpoint given to --policy is played from its run, not called corrupt."""
     _, run_dir, _, _, _ = run
@@ -788,7 +788,7 @@ def test_evaluate_ranks_checkpoints_against_the_robot_clock_bar(run_5ms):
     order = sorted(rows.values(), key=lambda r: r[0])
     keys = [(r[3][0], r[5] != "yes", sum(r[3]), -int(r[2].split("/")[0]), -r[1]) for r in order]
     assert keys == sorted(keys)
-    assert "first by issue 23's bar: " + min(rows, key=lambda k: rows[k][0]) in ranked
+    assert "first by the robot-clock bar: " + min(rows, key=lambda k: rows[k][0]) in ranked
 
 
 @pytest.mark.parametrize(

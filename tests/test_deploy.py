@@ -928,7 +928,7 @@ def test_after_any_single_operator_message_the_next_stop_stops(tmp_path, realtim
 
 
 def test_one_state_ahead_of_the_stream_cannot_lock_the_robot_out(tmp_path, realtime):
-    """Issue 22: one valid state whose seq is ahead of the real stream. Beyond the bridge's
+    """One valid state whose seq is ahead of the real stream. Beyond the bridge's
     window (+1000, +65536) it is rejected and the policy runs on. Inside the window it is
     accepted, the real states behind it are out of order and the bridge latches a
     stale-state fault; an operator reset re-anchors the sequence and the robot stands up

@@ -160,7 +160,7 @@ def test_the_history_holds_the_observation_as_the_policy_saw_it():
 
 
 def test_speed_set_checks_slalom_ramp_and_sweep_bars():
-    """The speed sweep's verdict (issue 20's bars) from results: a stand-still robot fails
+    """The speed sweep's verdict (the speed sweep's bars) from results: a stand-still robot fails
     the slalom and the ramp; errors at the bar pass, above it fail."""
     from legged_casters.tools import evaluate as ev
 

@@ -634,7 +634,7 @@ def test_bridge_rebuilds_the_whole_observation_with_clock_and_history(tmp_path):
 
 
 def test_play_feeds_the_policy_the_observation_the_bridge_builds(tmp_path, monkeypatch, capsys):
-    """Issue 22: the history right after a reset, and at a command change. From play.py's
+    """The history right after a reset, and at a command change. From play.py's
     first step, over the steps profile's change from standing to -0.6 m/s, robot 0's
     observation equals what the bridge builds from the same state: proprio_history at step
     k holds steps k-1, k-2, ... (all zeros at k = 0, step 0 in the newest slot at k = 1),

@@ -1,4 +1,4 @@
-"""The driving-wheel Go2 (issue 10): model, scripted drive, 16-action layout through
+"""The driving-wheel Go2: model, scripted drive, 16-action layout through
 env, export metadata, wire protocol, bridge and simulated robot."""
 
 from __future__ import annotations
@@ -250,7 +250,7 @@ def test_evaluation_asks_each_task_only_what_it_is_trained_for():
     caster = registry.get_task("caster_omni")
     assert evaluate.applicable(evaluate.FULL, caster.env_class, caster.env_cfg) == evaluate.FULL
     checks = dict((n, ok) for n, ok, _ in evaluate.verdict([_result("vx +1.0", 0.12)], "go2_wheel_flat"))
-    assert checks == {"vx +1.0: |vx error| <= 0.1": False}  # issue 10's bar for the wheel robot
+    assert checks == {"vx +1.0: |vx error| <= 0.1": False}  # the wheel robot's own bar
 
 
 def _result(name, err):

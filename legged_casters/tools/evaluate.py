@@ -191,11 +191,11 @@ SPEED = tuple(
     ),
     _const("downhill 3deg", (0.5, 0.0, 0.0), duration=10.0, measure_from=4.0, kind="hill", start_x=DOWNHILL_X),
 )  # fmt: skip
-"""The speed sweep of issue 20: vx from 0.25 m/s to the top speed both ways, vy, the vy
+"""The speed sweep: vx from 0.25 m/s to the top speed both ways, vy, the vy
 slalom, the Fig. 9 backward ramp (the slalom starts with 2 s of vx 0.8 alone) and the
 downhill hold (vx 0.5 down the evaluation hill's 3 deg descent, from a stand on it)."""
 SPEED_BARS = {"vx": ((1.5, 0.15), (2.0, 0.3)), "vy": ((0.4, 0.1),)}
-"""Issue 20's speed-sweep bars: axis -> ((up to this |command|, max mean |error|), ...)."""
+"""The speed sweep's bars: axis -> ((up to this |command|, max mean |error|), ...)."""
 SLALOM_SWING, SLALOM_HEADING_DEG = (0.3, 0.6), 30.0
 RAMP_BEST_2S = 2.0
 DOWNHILL_VX_ERROR = 0.2
@@ -208,9 +208,9 @@ THRESHOLDS = {
     "vx +2.0": ("vx", 0.3), "vy +0.4": ("vy", 0.15), "vy -0.4": ("vy", 0.15),
     "wz +0.8": ("wz", 0.25), "wz -0.8": ("wz", 0.25),
 }  # fmt: skip
-"""Issue 9's bar: scenario -> (axis, max mean |error|)."""
+"""The tracking bars: scenario -> (axis, max mean |error|)."""
 TASK_BARS = {"go2_wheel_flat": {"vx": 0.1, "wz": 0.2}}
-"""Per-task bars per axis that replace THRESHOLDS' (issue 10's for the wheel robot)."""
+"""Per-task bars per axis that replace THRESHOLDS' (the driving-wheel baseline's)."""
 STEP_SIGN_CHANGE_S = 1.5
 SIGN_CHANGE_MARGIN = 0.05
 """m/s: after the Fig. 6 step, the sign has changed once vx exceeds this (not mere jitter)."""
@@ -341,11 +341,11 @@ SIM2SIM = (
 """The rows of evaluate.py --sim2sim: the training conditions first, then one change each."""
 
 ROBOT_CLOCK = ("5 ms physics (training)", "2 ms physics", "20 ms action latency")
-"""The rows of SIM2SIM that issue 23's bar names (--robot-clock): the training conditions and
+"""The rows of SIM2SIM that the robot-clock check names (--robot-clock): the training conditions and
 the two it judges against them."""
 
 SIM2SIM_TOLERANCE = {"lin": 0.05, "ang": 0.1}
-"""Issue 23's sim-to-sim bar: under another condition every check that measures an error
+"""The robot-clock check's sim-to-sim bar: under another condition every check that measures an error
 stays within 0.05 m/s (vx, vy, the estimator's RMS) or 0.1 rad/s (wz) of its value in the
 first condition, and the robots fall no more often (over the same seeds)."""
 
@@ -604,7 +604,7 @@ def summary(results: list[ScenarioResult]) -> dict[str, float]:
 
 
 def verdict(results: list[ScenarioResult], task: str | None = None) -> list[tuple[str, bool, str]]:
-    """(check, passed, measured) against issue 9's thresholds (TASK_BARS for a task with its own)."""
+    """(check, passed, measured) against the tracking bars (TASK_BARS for a task with its own)."""
     checks = []
     by = {r.name: r for r in results}
     bars = TASK_BARS.get(task or "", {})
@@ -797,7 +797,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="LIST",
         help="after the run at the first seed, the random-command scenarios again under each further seed (the "
         "tracking scenarios do not depend on the seed): their falls per seed and in total; '0-4' or '0,3,7'. With "
-        "--sim2sim under every condition, and the table of SIM2SIM_TOLERANCE (issue 23's bar)",
+        "--sim2sim under every condition, and the table of SIM2SIM_TOLERANCE (the robot-clock bar)",
     )
     p.add_argument(
         "--symmetrise",
@@ -826,7 +826,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--robot-clock",
         action="store_true",
-        help="only the conditions of issue 23's bar (5 ms, 2 ms physics, 20 ms action latency) and its tolerance "
+        help="only the conditions of the robot-clock check (5 ms, 2 ms physics, 20 ms action latency) and its tolerance "
         "table; with --checkpoints each checkpoint under all three, ranked: fewest falls at 5 ms, then within the "
         "bar, then fewest falls in all, then most checks passed (--seeds counts the falls over several draws)",
     )
@@ -928,7 +928,7 @@ def rank(args: argparse.Namespace, default_log_root: Path | None) -> int:
             raise UsageError(f"--checkpoints ranks checkpoints of a run: leave out --{flag}")
     if args.sim2sim:
         raise UsageError(
-            "--checkpoints runs one condition, or issue 23's three with --robot-clock: leave out --sim2sim"
+            "--checkpoints runs one condition, or the robot-clock check's three with --robot-clock: leave out --sim2sim"
         )
     if args.seeds and not args.robot_clock:
         raise UsageError(
@@ -1021,7 +1021,7 @@ def falls_by_seed(spec, env_cfg, cond, scenarios, policy, args: argparse.Namespa
 
 
 def rank_robot_clock(args: argparse.Namespace, sel, paths: list[Path], scenarios) -> int:
-    """--checkpoints with --robot-clock: each checkpoint under issue 23's three conditions (each
+    """--checkpoints with --robot-clock: each checkpoint under the robot-clock check's three conditions (each
     result the one `--checkpoint N --robot-clock` gives), its line as it goes, then the table
     in _robot_clock_key's order."""
     from legged_casters.tools.export import load_actor
@@ -1031,7 +1031,7 @@ def rank_robot_clock(args: argparse.Namespace, sel, paths: list[Path], scenarios
     conditions = named_conditions(args, sel.env_cfg, ROBOT_CLOCK)
     print(
         f"[{PROG}] run {sel.run_dir}: {len(paths)} checkpoints, {len(scenarios)} scenarios, "
-        f"{len(conditions)} conditions (issue 23's bar), seeds {', '.join(map(str, seeds))}"
+        f"{len(conditions)} conditions (the robot-clock bar), seeds {', '.join(map(str, seeds))}"
     )
     ranked = []
     for i, path in enumerate(paths, 1):
@@ -1063,7 +1063,7 @@ def rank_robot_clock(args: argparse.Namespace, sel, paths: list[Path], scenarios
     print()
     print(format_robot_clock_ranking(ranked, len(seeds)))
     top = min(ranked, key=_robot_clock_key)
-    print(f"\n[{PROG}] first by issue 23's bar: {_robot_clock_line(top)}")
+    print(f"\n[{PROG}] first by the robot-clock bar: {_robot_clock_line(top)}")
     return common.EXIT_OK
 
 
@@ -1093,7 +1093,7 @@ def format_robot_clock_ranking(rows: list[dict], n_seeds: int) -> str:
     that condition is within the bar; then whether all are."""
     names = [n.split(" (")[0] for n in ROBOT_CLOCK]
     lines = [
-        f"issue 23's bar: every error check within {SIM2SIM_TOLERANCE['lin']} m/s ({SIM2SIM_TOLERANCE['ang']} rad/s "
+        f"the robot-clock bar: every error check within {SIM2SIM_TOLERANCE['lin']} m/s ({SIM2SIM_TOLERANCE['ang']} rad/s "
         f"for wz) of its training-condition value, and no more falls ({n_seeds} seed{'s' if n_seeds > 1 else ''})",
         f"| rank | checkpoint | iteration | checks passed | falls ({' / '.join(names)}) | "
         + " | ".join(f"{n}: largest change, m/s; rad/s: within" for n in names[1:])
