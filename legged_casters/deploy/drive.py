@@ -110,6 +110,43 @@ def policy_limits(policy: str | Path) -> tuple[CommandRanges, tuple[P.Propulsion
     return CommandRanges.from_limits(export.env_cfg.commands.limits()), modes
 
 
+def add_drive_args(p) -> None:
+    """--policy / --task / --max-command / --dead-zone on an argparse parser: what bounds
+    hand driving."""
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--policy", help="export directory whose training command ranges bound the sticks")
+    g.add_argument("--task", help="task whose default command ranges bound the sticks")
+    p.add_argument(
+        "--max-command",
+        type=float,
+        nargs=3,
+        metavar=("VX", "VY", "WZ"),
+        help="narrow the ranges further to +-these (m/s, m/s, rad/s)",
+    )
+    p.add_argument(
+        "--dead-zone",
+        type=float,
+        default=DEFAULT_DEAD_ZONE,
+        help=f"stick travel around the centre read as released (default {DEFAULT_DEAD_ZONE})",
+    )
+
+
+def drive_limits(args) -> tuple[CommandRanges, tuple[P.PropulsionMode, ...], str]:
+    """(ranges, modes, where they came from) of --policy / --task, capped by --max-command;
+    ValueError when they cannot be read."""
+    if not 0.0 <= args.dead_zone < 1.0:
+        raise ValueError(f"--dead-zone {args.dead_zone}: must be in [0, 1)")
+    if args.policy:
+        ranges, modes = policy_limits(args.policy)
+        source = f"policy {args.policy}"
+    else:
+        ranges, modes = task_command_ranges(args.task), tuple(P.PropulsionMode)
+        source = f"task {args.task}"
+    if args.max_command is not None:
+        ranges = ranges.capped(args.max_command)
+    return ranges, modes, source
+
+
 def dead_zone(value: float, zone: float) -> float:
     """A raw stick value in [-1, 1] -> 0 inside +-zone, else rescaled so that the edge of
     the zone is 0 and the end of travel is +-1; non-finite values read as 0."""
@@ -293,7 +330,7 @@ class Gamepad:
 # into it) lays them out, little-endian: head[2] at 0, the button bitfield xKeySwitchUnion
 # (uint16) at 2, then float lx at 4, rx at 8, ry at 12, L2 at 16, ly at 20, idle[16] at 24.
 # The same offsets are read by unitree_rl_gym's deploy/deploy_real/common/remote_controller.py.
-REMOTE_SIZE = 40
+REMOTE_SIZE = 40  # unitree.WIRELESS_REMOTE_SIZE
 REMOTE_LAYOUT = struct.Struct("<2BH5f16x")
 REMOTE_BUTTONS = tuple(
     ["R1", "L1", "start", "select", "R2", "L2", "F1", "F2", "A", "B", "X", "Y", "up", "right", "down", "left"]

@@ -98,39 +98,6 @@ def drive_gamepad(
         sleep(max(0.0, t0 + k / rate - clock()))
 
 
-def drive_limits(args) -> tuple[drive.CommandRanges, tuple[P.PropulsionMode, ...], str]:
-    """(ranges, modes, where they came from) of --policy / --task, capped by --max-command."""
-    if args.policy:
-        ranges, modes = drive.policy_limits(args.policy)
-        source = f"policy {args.policy}"
-    else:
-        ranges, modes = drive.task_command_ranges(args.task), tuple(P.PropulsionMode)
-        source = f"task {args.task}"
-    if args.max_command is not None:
-        ranges = ranges.capped(args.max_command)
-    return ranges, modes, source
-
-
-def add_drive_args(p: argparse.ArgumentParser) -> None:
-    """--policy / --task / --max-command / --dead-zone: the command ranges of hand driving."""
-    g = p.add_mutually_exclusive_group()
-    g.add_argument("--policy", help="export directory whose training command ranges bound the sticks")
-    g.add_argument("--task", help="task whose default command ranges bound the sticks")
-    p.add_argument(
-        "--max-command",
-        type=float,
-        nargs=3,
-        metavar=("VX", "VY", "WZ"),
-        help="narrow the ranges further to +-these (m/s, m/s, rad/s)",
-    )
-    p.add_argument(
-        "--dead-zone",
-        type=float,
-        default=drive.DEFAULT_DEAD_ZONE,
-        help=f"stick travel around the centre read as released (default {drive.DEFAULT_DEAD_ZONE})",
-    )
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--vx", type=float, default=0.0)
@@ -154,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
         help="seconds to repeat a velocity command (default 1); with --gamepad: 0, until Ctrl-C",
     )
     p.add_argument("--rate", type=float, default=10.0)
-    add_drive_args(p)
+    drive.add_drive_args(p)
     transport.add_zenoh_args(p, role="operator")
     args = p.parse_args(argv)
     if args.duration is None:
@@ -163,10 +130,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.gamepad:
         if not (args.policy or args.task):
             p.error("--gamepad needs --policy DIR or --task NAME: they bound what the sticks command")
-        if not (0.0 <= args.dead_zone < 1.0) or not (args.rate > 0):
-            p.error("--dead-zone must be in [0, 1) and --rate positive")
+        if not args.rate > 0:
+            p.error("--rate must be positive")
         try:
-            ranges, modes, source = drive_limits(args)
+            ranges, modes, source = drive.drive_limits(args)
             device = JsDevice(args.gamepad)
         except ValueError as err:
             print(f"teleop: error: {err}", file=sys.stderr)
