@@ -199,3 +199,26 @@ def test_gamepad_read_error_is_a_loss():
     with pytest.raises(GamepadLost):
         dev.read_events()
     dev.close()
+
+
+def test_teleop_warns_when_another_operator_has_the_bridge():
+    """The bridge follows one operator sender: when its accepted count and last seq stop
+    following this gamepad's messages, teleop says so (once), and again when they follow."""
+    from legged_casters.deploy.teleop import BridgeListens
+
+    statuses: list[P.BridgeStatus] = []
+    listens = BridgeListens(statuses, every=1.0)
+    assert listens(0.0, 0, 0) is None  # no bridge heard yet
+    lines = []
+    other_seq = 5000
+    for k in range(1, 61):  # 6 s at 10 Hz; from 2 s on another sender has the bridge, from 4 s on us again
+        t = k / 10
+        mine = t <= 2.0 or t > 4.0
+        last = k if mine else other_seq + k
+        statuses.append(P.BridgeStatus(received_operator=k, last_operator_seq=last))  # one accepted per tick
+        line = listens(t, k, k)
+        if line:
+            lines.append((t, line))
+    assert len(lines) == 2
+    assert 2.0 < lines[0][0] <= 3.2 and "WARNING" in lines[0][1] and "stop" in lines[0][1]
+    assert 4.0 < lines[1][0] <= 5.2 and "again" in lines[1][1]

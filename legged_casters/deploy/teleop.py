@@ -98,6 +98,44 @@ def drive_gamepad(
         sleep(max(0.0, t0 + k / rate - clock()))
 
 
+class BridgeListens:
+    """Whether the bridge takes this sender's messages, from its status: over each `every`
+    seconds its count of accepted operator messages should grow by about what was sent,
+    and its last accepted seq be one of ours. The bridge follows one operator sender at a
+    time (docs/deploy.md, sequence numbers), so another operator can take it over; then
+    this one's stop does not reach it. Returns a line to print when the answer changes."""
+
+    def __init__(self, statuses: list, every: float = 1.0):
+        self.statuses, self.every = statuses, every
+        self._at: tuple[float, int, int, int] | None = None  # (time, sent, our seq, accepted)
+        self.ok: bool | None = None
+
+    def __call__(self, now: float, sent: int, seq: int) -> str | None:
+        if not self.statuses:
+            return None
+        accepted = self.statuses[-1].received_operator
+        if self._at is None:
+            self._at = (now, sent, seq, accepted)
+            return None
+        t, sent0, seq0, accepted0 = self._at
+        if now - t < self.every:
+            return None
+        self._at = (now, sent, seq, accepted)
+        d_sent, d_accepted = sent - sent0, accepted - accepted0
+        ok = abs(d_accepted - d_sent) <= 3 + 0.3 * d_sent and seq0 - 3 <= self.statuses[-1].last_operator_seq <= seq
+        if ok == self.ok or (self.ok is None and ok):
+            self.ok = ok
+            return None
+        self.ok = ok
+        if ok:
+            return "teleop: the bridge takes this gamepad's messages again"
+        return (
+            f"teleop: WARNING: the bridge accepted {d_accepted} operator messages while this gamepad sent {d_sent}: "
+            "another operator (a second teleop, go2_adapter --remote) is driving it, and this gamepad's stop "
+            "does not reach it"
+        )
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--vx", type=float, default=0.0)
@@ -171,10 +209,15 @@ def main(argv: list[str] | None = None) -> int:
         transport.arm_signals()
         time.sleep(0.5)  # let the session connect before the first sample
         if pad is not None:
+            listens = BridgeListens(statuses)
 
             def send_drive(d: drive.Drive) -> None:
-                pub.put(d.command(sender.next_header()).encode())
+                h = sender.next_header()
+                pub.put(d.command(h).encode())
                 sent[0] += 1
+                line = listens(time.monotonic(), sent[0], h.seq)
+                if line:
+                    print(line, flush=True)
 
             try:
                 why = drive_gamepad(device.read_events, pad, send_drive, args.rate, args.duration)
