@@ -102,7 +102,7 @@ class BridgeListens:
     """Whether the bridge takes this sender's messages, from its status: over each `every`
     seconds its count of accepted operator messages should grow by about what was sent,
     and its last accepted seq be one of ours. The bridge follows one operator sender at a
-    time (docs/deploy.md, sequence numbers), so another operator can take it over; then
+    time (docs/deploy.md, "Validation"), so another operator can take it over; then
     this one's stop does not reach it. Returns a line to print when the answer changes."""
 
     def __init__(self, statuses: list, every: float = 1.0):
