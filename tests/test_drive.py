@@ -222,3 +222,50 @@ def test_teleop_warns_when_another_operator_has_the_bridge():
     assert len(lines) == 2
     assert 2.0 < lines[0][0] <= 3.2 and "WARNING" in lines[0][1] and "stop" in lines[0][1]
     assert 4.0 < lines[1][0] <= 5.2 and "again" in lines[1][1]
+
+
+def test_teleop_gamepad_cli_over_zenoh(tmp_path):
+    """teleop --gamepad on a FIFO of js_event records, into a zenoh peer: commands at its
+    rate inside --max-command, the stop latched, and after the last writer closes (the pad
+    gone) one zero command with the stop, then silence and a clean exit."""
+    import subprocess
+    import sys
+    import time
+
+    from test_deploy import free_port, peer, wait_for
+
+    fifo = tmp_path / "js0"
+    os.mkfifo(fifo)
+    wfd = os.open(fifo, os.O_RDWR)  # the pad: a writer from the start
+    port = free_port()
+    session = peer(listen=port)
+    got: list[P.OperatorCommand] = []
+    sub = session.declare_subscriber(
+        "t_pad/operator", lambda s: got.append(P.OperatorCommand.decode(s.payload.to_bytes()))
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "legged_casters.deploy.teleop", "--connect", f"tcp/127.0.0.1:{port}",
+         "--namespace", "t_pad", "--gamepad", str(fifo), "--task", "caster_omni", "--max-command", "0.5", "0.2", "0.5",
+         "--rate", "20"],
+        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    try:
+        assert wait_for(lambda: len(got) > 3, 60.0), "no operator message"
+        assert all((o.vx, o.vy, o.wz, o.flags) == (0.0, 0.0, 0.0, 0) for o in got)
+        os.write(wfd, E.axis(1, -1.0).encode() + E.axis(0, 1.0).encode())
+        assert wait_for(lambda: got[-1].vx == pytest.approx(0.5) and got[-1].vy == pytest.approx(-0.2), 5.0)
+        os.write(wfd, E.button(1, True).encode() + E.button(1, False).encode())
+        assert wait_for(lambda: got[-1].stop, 5.0)
+        os.close(wfd)
+        out, _ = proc.communicate(timeout=30)
+        assert proc.returncode == 0 and "gamepad lost" in out, out
+        n = len(got)
+        time.sleep(0.3)
+        assert len(got) == n and got[-1].stop and (got[-1].vx, got[-1].vy, got[-1].wz) == (0.0, 0.0, 0.0)
+        tol = 1e-6  # float32 on the wire
+        assert all(abs(o.vx) <= 0.5 + tol and abs(o.vy) <= 0.2 + tol and abs(o.wz) <= 0.5 + tol for o in got)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        sub.undeclare()
+        session.close()
