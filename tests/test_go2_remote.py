@@ -12,6 +12,7 @@ import time
 import numpy as np
 import pytest
 from sdk_standin import Bus, new_lowstate
+from test_deploy import _spawn, _stop, free_port, peer, realtime, wait_for  # noqa: F401 (fixture)
 
 from legged_casters.deploy import drive, unitree
 from legged_casters.deploy import protocol as P
@@ -274,3 +275,69 @@ def test_real_sdk_lowstate_carries_the_remote_to_the_adapter():
     a.on_lowstate(low)
     a.tick(time.monotonic())
     assert a.mode == P.CommandMode.DAMPING and _ops(ops)[-1].stop
+
+
+@pytest.mark.usefixtures("realtime")
+def test_remote_drives_and_stops_a_bridge_through_the_adapter(tmp_path):
+    """The fake Go2 and the adapter in this process (SDK stand-in), the adapter on zenoh,
+    a bridge with the simple policy in another process: the remote's sticks reach the
+    bridge as operator commands; L2+B damps the adapter at once and latches the bridge in
+    STOPPED; L2+start resets the bridge, and the adapter follows its new stand-up."""
+    from legged_casters.deploy.fake_go2 import FakeGo2
+    from legged_casters.deploy.simple_policy import write_policy
+
+    policy = write_policy(tmp_path, gait_gain=0.8).parent
+    port, ns = free_port(), "t_remote"
+    keys = P.keys(ns)
+    session = peer(listen=port)
+    statuses: list[P.BridgeStatus] = []
+    sdk = Bus().sdk()
+    robot = FakeGo2(sdk, state_rate=200.0, watchdog=0.1)
+    a = Go2Adapter(
+        sdk,
+        session.declare_publisher(keys["state"]).put,
+        sdk.ChannelPublisher(unitree.LOWCMD_TOPIC, None).Write,
+        damping_kd=1.0,
+        remote=_remote(),
+        publish_operator=session.declare_publisher(keys["operator"]).put,
+    )
+    subs = [
+        session.declare_subscriber(keys["cmd"], lambda s: a.on_command(s.payload.to_bytes())),
+        session.declare_subscriber(
+            keys["status"], lambda s: statuses.append(P.BridgeStatus.decode(s.payload.to_bytes()))
+        ),
+    ]
+    sdk.ChannelSubscriber(unitree.LOWSTATE_TOPIC, None).Init(a.on_lowstate, 10)
+    robot.start()
+    a.start(200.0)
+    bridge = _spawn("bridge", "--policy", str(policy), "--connect", f"tcp/127.0.0.1:{port}", "--namespace", ns,
+                    "--standup", "linear", "--standup-time", "1.0", "--max-state-age-ms", "100")  # fmt: skip
+    try:
+        robot.set_wireless_remote(enc())  # a remote that reports, sticks released
+        assert wait_for(lambda: statuses and statuses[-1].state == P.BridgeState.RUNNING, 60.0), "bridge not running"
+        assert wait_for(lambda: a.mode == P.CommandMode.POLICY, 5.0)
+        n0 = statuses[-1].received_operator
+        robot.set_wireless_remote(enc(ly=1.0))
+        assert wait_for(lambda: statuses[-1].received_operator > n0 + 5, 5.0), "bridge takes no remote command"
+        assert sum(statuses[-1].rejected) == 0
+        robot.set_wireless_remote(enc(("L2", "B")))
+        t_set = robot.remote_set_at
+        assert wait_for(lambda: a.mode == P.CommandMode.DAMPING, 1.0)
+        t_damp = next(t for t, mode, why in a.mode_changes if why == REMOTE_STOP_WHY)
+        assert t_damp - t_set < 0.005 + 0.005 + 0.010  # a LowState and a LowCmd period at 200 Hz, slack
+        assert wait_for(lambda: statuses[-1].state == P.BridgeState.STOPPED, 2.0), "bridge not stopped"
+        assert statuses[-1].fault == P.Fault.OPERATOR_STOP
+        robot.set_wireless_remote(enc(("L2",)))
+        time.sleep(0.2)
+        assert a.mode == P.CommandMode.DAMPING and statuses[-1].state == P.BridgeState.STOPPED
+        robot.set_wireless_remote(enc(("L2", "start")))
+        assert wait_for(lambda: a.mode == P.CommandMode.STANDUP, 5.0), "adapter did not follow the stand-up"
+        robot.set_wireless_remote(enc())
+        assert wait_for(lambda: statuses[-1].state == P.BridgeState.RUNNING and a.mode == P.CommandMode.POLICY, 10.0)
+    finally:
+        _stop(bridge)
+        a.stop()
+        robot.stop()
+        for s in subs:
+            s.undeclare()
+        session.close()
