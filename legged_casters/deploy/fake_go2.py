@@ -13,6 +13,9 @@ motor-side watchdog (damping after ``--watchdog-ms`` without a valid LowCmd) are
 `sim_robot`'s. Whether a real Go2 damps, holds or goes limp when LowCmd stops is not
 known here: the adapter never relies on it.
 
+Its LowState's ``wireless_remote`` holds 40 zero bytes (no remote) until a test sets
+what the Go2's remote would report with `FakeGo2.set_wireless_remote`.
+
 With zenoh endpoints (``--listen`` / ``--connect``) it also publishes ``<ns>/sim/truth``
 (trunk position and velocity, at most TRUTH_RATE_HZ) for tests; it never publishes our
 state message: that is the adapter's job.
@@ -52,6 +55,17 @@ class FakeGo2(SimRobot):
         self.lowstates = 0
         self.cmd_sender = P.Sender()
         self.truth_every = max(1, round(1.0 / (self.dt * self.decimation * TRUTH_RATE_HZ)))
+        self._remote = [0] * unitree.WIRELESS_REMOTE_SIZE
+        self.remote_set_at: float | None = None
+        """monotonic time of the last set_wireless_remote."""
+
+    def set_wireless_remote(self, raw: bytes) -> None:
+        """What the Go2's remote reports (40 bytes, drive.RemoteState.encode) from the next
+        LowState on."""
+        if len(raw) != unitree.WIRELESS_REMOTE_SIZE:
+            raise ValueError(f"wireless_remote is {unitree.WIRELESS_REMOTE_SIZE} bytes, got {len(raw)}")
+        self._remote = list(raw)
+        self.remote_set_at = time.monotonic()
 
     def _publish(self, which: str, payload: bytes) -> None:
         if which == "truth" and self.publish_truth is not None:
@@ -85,6 +99,7 @@ class FakeGo2(SimRobot):
         s = self.data.sensordata
         self.low.tick = int(self.data.time * 1000) & 0xFFFFFFFF
         self.map.write_state(self.low, s[self._quat], s[self._gyro], s[self._qs], s[self._dqs])
+        self.low.wireless_remote = self._remote
         self.low_pub.Write(self.low)
         self.lowstates += 1
         if self.publish_truth is None or self.lowstates % self.truth_every:

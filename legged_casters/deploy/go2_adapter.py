@@ -27,6 +27,14 @@ What it does:
   ``--real-robot`` (or ``--dry-run``, which never writes ``rt/lowcmd``).
 * Live status: a line on every change of what it sends (NONE -> STANDUP -> POLICY,
   -> DAMPING with the reason) and a summary every ``--summary-every`` seconds.
+* ``--remote`` (with ``--policy`` or ``--task`` for the command ranges): the Go2's own
+  remote, read from ``LowState.wireless_remote``, drives: its sticks and mode buttons
+  become operator commands on ``<ns>/operator`` (``--remote-rate`` Hz while the remote
+  reports), and its stop combination (L2+B) makes the adapter damp by itself from the
+  next LowCmd on (within one ``--cmd-rate`` period of the LowState that carries it),
+  with or without a bridge, and tells the bridge to stop. Only the remote's reset
+  combination (L2+start) releases that stop, and the adapter then keeps damping until
+  the bridge sends a stand-up. docs/driving.md has the button map.
 """
 
 from __future__ import annotations
@@ -39,11 +47,15 @@ import time
 
 import numpy as np
 
+from legged_casters.deploy import drive, robot_side, transport, unitree
 from legged_casters.deploy import protocol as P
-from legged_casters.deploy import robot_side, transport, unitree
 from legged_casters.robot import build
 
 LOOPBACK = ("lo", "lo0")
+REMOTE_STOP_WHY = "stop on the Go2 remote"
+REMOTE_RESUME_WHY = "after a remote stop: waiting for the bridge's stand-up"
+REMOTE_FRESH = 0.1
+"""s: remote data older than this (no LowState) is gone: no more operator commands."""
 
 
 class Go2Adapter(robot_side.TakesCommands):
@@ -59,6 +71,9 @@ class Go2Adapter(robot_side.TakesCommands):
         watchdog: float = 0.1,
         damping_kd: float = 1.0,
         state_every: int = 1,
+        remote: drive.Remote | None = None,
+        publish_operator=None,
+        remote_rate: float = 20.0,
     ):
         self.sdk = sdk
         self.map = unitree.MotorMap.for_robot(robot)
@@ -81,9 +96,71 @@ class Go2Adapter(robot_side.TakesCommands):
         self.last_written: tuple[np.ndarray, ...] | None = None
         self._running = False
         self._thread: threading.Thread | None = None
+        # the Go2 remote (None: not used)
+        self.remote = remote
+        self.publish_operator = publish_operator
+        self.remote_period = 1.0 / remote_rate
+        self.operator_sender = P.Sender()
+        self.operator_sent = 0
+        self.operator_errors = 0
+        self.bad_remote = 0
+        self._remote_at = -math.inf
+        self._remote_resume_at: float | None = None
+        """Set by the remote's reset: damping goes on until a STANDUP command newer than it."""
+        self._next_operator = -math.inf
+        self._operator_active = False
+
+    # --- the Go2 remote -----------------------------------------------------------------
+    def on_remote(self, raw, now: float) -> None:
+        """LowState.wireless_remote (40 bytes) -> the remote's decision; a stop is acted on
+        by the next tick, whatever the bridge does."""
+        try:
+            state = drive.RemoteState.decode(raw)
+        except ValueError:
+            with self._lock:
+                self.bad_remote += 1
+            return
+        with self._lock:
+            was = self.remote.stopped
+            self.remote.update(state)
+            if state.present:
+                self._remote_at = now
+            if self.remote.stopped != was:
+                self._next_operator = -math.inf  # tell the bridge at once
+                self._remote_resume_at = None if self.remote.stopped else now
+
+    def remote_damping(self, cmd, arrival: float) -> str:
+        """Why the remote holds the robot in damping now ('' when it does not)."""
+        with self._lock:
+            if self.remote.stopped:
+                return REMOTE_STOP_WHY
+            if self._remote_resume_at is None:
+                return ""
+            if cmd is not None and cmd.mode == P.CommandMode.STANDUP and arrival >= self._remote_resume_at:
+                self._remote_resume_at = None
+                return ""
+            return REMOTE_RESUME_WHY
+
+    def _operator_tick(self, now: float) -> None:
+        """Publish the remote's operator command every remote period while the remote
+        reports (at once on a stop or a reset); one zero command when it stops reporting."""
+        with self._lock:
+            fresh = now - self._remote_at <= REMOTE_FRESH
+            if fresh and now < self._next_operator:
+                return
+            if not fresh and not self._operator_active:
+                return
+            r = self.remote
+            d = r.drive() if fresh else drive.Drive(propulsion=r.propulsion, stop=r.stopped)
+            self._operator_active = fresh
+            self._next_operator = now + self.remote_period
+        self.publish_operator(d.command(self.operator_sender.next_header()).encode())
+        self.operator_sent += 1
 
     # --- robot -> bridge --------------------------------------------------------------
     def on_lowstate(self, low) -> None:
+        if self.remote is not None:  # first: a stop counts even in a LowState dropped below
+            self.on_remote(low.wireless_remote, time.monotonic())
         quat, gyro, q, dq = self.map.read_state(low)
         with self._lock:
             self.lowstates += 1
@@ -107,10 +184,15 @@ class Go2Adapter(robot_side.TakesCommands):
     def targets(self, now: float) -> tuple[P.CommandMode, str, tuple[np.ndarray, ...] | None]:
         """(mode, reason, (q, dq, kp, kd)) to write now; None: write nothing."""
         cmd, arrival = self.inbox.latest()
-        if cmd is None:
-            return P.CommandMode.NONE, "", None
         with self._lock:
             q_meas = self._q
+        if self.remote is not None:
+            why = self.remote_damping(cmd, arrival)
+            if why:  # also before any command: a stop stops
+                zeros = np.zeros(self.n)
+                return P.CommandMode.DAMPING, why, (q_meas, zeros, zeros, np.full(self.n, self.damping_kd))
+        if cmd is None:
+            return P.CommandMode.NONE, "", None
         mode, why, *t = robot_side.command_targets(cmd, arrival, now, self.watchdog, self.damping_kd, q_meas)
         return mode, why, tuple(t)
 
@@ -120,6 +202,7 @@ class Go2Adapter(robot_side.TakesCommands):
             self.mode = mode
             self.mode_changes.append((now, mode, why))
         if t is None:
+            self._remote_tick(now)
             return
         # the same targets as the last LowCmd (between two commands, 9 of 10 ticks at 500 Hz):
         # the filled LowCmd and its CRC are written again as they are
@@ -129,6 +212,17 @@ class Go2Adapter(robot_side.TakesCommands):
         if self.write_lowcmd is not None:
             self.write_lowcmd(self.lowcmd)
         self.lowcmds_written += 1
+        self._remote_tick(now)
+
+    def _remote_tick(self, now: float) -> None:
+        """After the LowCmd: the remote's operator command, if one is due. A failing publish
+        (the link gone) is counted and never stops the LowCmd loop."""
+        if self.remote is None or self.publish_operator is None:
+            return
+        try:
+            self._operator_tick(now)
+        except Exception:  # noqa: BLE001 - the robot's loop must go on whatever zenoh does
+            self.operator_errors += 1
 
     def _loop(self, rate: float) -> None:
         robot_side.run_fixed_rate(1.0 / rate, lambda: self._running, lambda now, _: self.tick(now))
@@ -175,6 +269,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--damping-kd", type=float, default=1.0)
     p.add_argument("--duration", type=float, default=0.0, help="seconds (0: until Ctrl-C)")
     p.add_argument("--summary-every", type=float, default=10.0, help="seconds between status lines (0: none)")
+    p.add_argument(
+        "--remote",
+        action="store_true",
+        help="drive with the Go2's own remote (needs --policy or --task); its stop damps here, bridge or not",
+    )
+    p.add_argument("--remote-rate", type=float, default=20.0, help="operator commands per second from the remote")
+    drive.add_drive_args(p)
     transport.add_zenoh_args(p, role="robot")
     args = p.parse_args(argv)
     refusal = check_interface(args.network_interface, args.real_robot, args.dry_run)
@@ -184,6 +285,27 @@ def main(argv: list[str] | None = None) -> int:
     if not (args.cmd_rate > 0 and math.isfinite(args.cmd_rate)):
         print("go2_adapter: error: --cmd-rate must be a positive number of messages per second", file=sys.stderr)
         return 2
+    remote = None
+    if args.remote:
+        if not (args.policy or args.task):
+            print("go2_adapter: error: --remote needs --policy DIR or --task NAME (its ranges)", file=sys.stderr)
+            return 2
+        if getattr(args, "secure", None):
+            print(
+                "go2_adapter: error: --remote with --secure: the robot's certificate may not put operator commands "
+                "(only the operator's may), so the bridge would drop the remote's; drive with teleop instead",
+                file=sys.stderr,
+            )
+            return 2
+        if not (args.remote_rate > 0 and math.isfinite(args.remote_rate)):
+            print("go2_adapter: error: --remote-rate must be a positive number per second", file=sys.stderr)
+            return 2
+        try:
+            ranges, modes, source = drive.drive_limits(args)
+        except ValueError as err:
+            print(f"go2_adapter: error: {err}", file=sys.stderr)
+            return 2
+        remote = drive.Remote(ranges, zone=args.dead_zone, modes=modes, propulsion=modes[0])
     try:
         transport.check_options(args)  # endpoints and --secure's files, before the SDK starts
         sdk = unitree.load_sdk()
@@ -207,6 +329,9 @@ def main(argv: list[str] | None = None) -> int:
         watchdog=args.watchdog_ms / 1e3,
         damping_kd=args.damping_kd,
         state_every=args.state_every,
+        remote=remote,
+        publish_operator=session.declare_publisher(keys["operator"]).put if remote is not None else None,
+        remote_rate=args.remote_rate,
     )
     cmd_sub = session.declare_subscriber(keys["cmd"], lambda s: a.on_command(s.payload.to_bytes()))
     low_sub = sdk.ChannelSubscriber(unitree.LOWSTATE_TOPIC, sdk.LowState)
@@ -219,6 +344,12 @@ def main(argv: list[str] | None = None) -> int:
         flush=True,
     )
     print(f"go2_adapter: joint -> Unitree motor: {a.map.describe()}", flush=True)
+    if remote is not None:
+        print(
+            f"go2_adapter: the Go2 remote drives on {keys['operator']} (ranges of {source}: {ranges.describe()}); "
+            f"{remote.mapping.describe()}",
+            flush=True,
+        )
     watch, rates = robot_side.Watch("go2_adapter", a.mode_changes), robot_side.Rates()
     waited = False
 
@@ -240,6 +371,9 @@ def main(argv: list[str] | None = None) -> int:
             f"LowCmd {written:.0f}/s{' (dry run, not sent)' if args.dry_run else ''}, "
             f"{a.inbox.round_trip.summary()}, bad LowState {a.bad_lowstates}, rejected {rejected or 'none'}"
         )
+        if remote is not None:
+            line += f"; remote: {a.operator_sent} operator commands sent ({a.operator_errors} failed)"
+            line += f", stopped ({'+'.join(remote.mapping.reset)} resets)" if remote.stopped else ""
         if args.dry_run and a.last_written is not None:
             q, _, kp, kd = a.last_written
             line += f"; would send q {np.round(q, 2).tolist()} kp {kp.max():.0f} kd {kd.max():.1f}"

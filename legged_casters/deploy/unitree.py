@@ -42,6 +42,8 @@ HEAD = (0xFE, 0xEF)
 LEVEL_LOW = 0xFF
 MOTOR_SERVO = 0x01
 """motor_cmd[i].mode: 0x01 servo (PD in the motor driver); 0x00 off."""
+WIRELESS_REMOTE_SIZE = 40
+"""Bytes of LowState.wireless_remote (the Go2 remote's state; deploy/drive.py decodes it)."""
 POS_STOP = 2.146e9
 VEL_STOP = 16000.0
 """The q / dq values Unitree's examples send to a motor slot they do not drive."""
