@@ -927,6 +927,32 @@ def test_after_any_single_operator_message_the_next_stop_stops(tmp_path, realtim
         b.stop()
 
 
+def test_a_replaced_operator_still_stops_the_robot(tmp_path, realtime):
+    """Two operator sources (a gamepad and the Go2 remote, say): once the second has taken
+    over the stream, the first one's motion commands are refused, but its stop still stops."""
+    rec = Recorder()
+    b = _bridge(tmp_path, rec)
+    first, second = P.Sender(), P.Sender()
+    b.start()
+    robot = FakeRobot(b.on_state)
+    try:
+        assert wait_for(lambda: b.state is P.BridgeState.RUNNING, 2.0)
+        for _ in range(3):
+            b.on_operator(op(first, vx=0.1))
+        for _ in range(3):
+            b.on_operator(op(second, vx=0.2))
+        assert b.operator_filter.epoch == second.epoch
+        refused = b.rejected["out_of_order"]
+        b.on_operator(op(first, vx=0.5))
+        assert b.rejected["out_of_order"] == refused + 1 and b.commands[0] == pytest.approx(0.2)
+        b.on_operator(op(first, flags=P.OP_STOP))
+        assert b.state is P.BridgeState.STOPPED
+        assert wait_for(lambda: any(c.mode == P.CommandMode.DAMPING for _, c in rec.cmds), 0.1)
+    finally:
+        robot.stop()
+        b.stop()
+
+
 def test_one_state_ahead_of_the_stream_cannot_lock_the_robot_out(tmp_path, realtime):
     """One valid state whose seq is ahead of the real stream. Beyond the bridge's
     window (+1000, +65536) it is rejected and the policy runs on. Inside the window it is
