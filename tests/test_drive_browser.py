@@ -199,6 +199,12 @@ def test_drive_in_a_headless_browser(tmp_path):
             _, line = out.wait(lambda s: "(keys w)" in s, 20, i + 1)
             assert COMMAND.search(line).group(1) in ("+0.00", "-0.00")
             cdp.screenshot(tmp_path / "driving_browser_stopped.png")
+            cdp.key("r", "KeyR", 82)  # releases the stop and resets the robot; from zero again
+            i, line = out.wait(lambda s: "(keys r)" in s, 20, i + 1)
+            assert COMMAND.search(line).group(4) == "four_wheel"
+            cdp.key("2", "Digit2", 50)
+            _, line = out.wait(lambda s: "(keys 2)" in s, 20, i + 1)
+            assert COMMAND.search(line).group(4) == "front_wheel"
     finally:
         if browser is not None:
             browser.terminate()

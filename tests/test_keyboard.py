@@ -94,3 +94,21 @@ def test_viewer_key_codes():
     imgui = pytest.importorskip("mujoco.studio.dear_imgui.dear_imgui")
     for name in keyboard.KEYS:
         assert hasattr(imgui.Key, keyboard.imgui_key_attr(name)), name
+
+
+@pytest.mark.parametrize(
+    "extra",
+    [["--profile", "steps"], ["--cmd", "1", "0", "0"], ["--mode", "front_wheel"], ["--headless"], ["--viewer"]],
+)
+def test_play_drive_refuses_scripted_flags(extra, capsys):
+    from legged_casters.tools import play
+
+    assert play.main(["--drive", *extra]) != 0
+    assert "--drive" in capsys.readouterr().err
+
+
+def test_play_web_needs_drive(capsys):
+    from legged_casters.tools import play
+
+    assert play.main(["--web", "--policy", "zero", "--task", "caster_omni"]) != 0
+    assert "--web goes with --drive" in capsys.readouterr().err
