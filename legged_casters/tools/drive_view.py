@@ -200,10 +200,9 @@ class DesktopDriveView:
         with self.viewer.lock():
             self.data.qpos[:] = qpos
             mujoco.mj_forward(self.model, self.data)
-            if lines:
-                self.viewer.set_texts(
-                    (mujoco.mjtFontScale.mjFONTSCALE_150, mujoco.mjtGridPos.mjGRID_TOPLEFT, "\n".join(lines), "")
-                )
+        if lines:  # set_texts takes the viewer's lock itself: outside the block above
+            font, grid = mujoco.mjtFontScale.mjFONTSCALE_150, mujoco.mjtGridPos.mjGRID_TOPLEFT
+            self.viewer.set_texts((font, grid, "\n".join(lines), ""))
         self.viewer.sync()
 
     def is_running(self) -> bool:
