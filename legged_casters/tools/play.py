@@ -597,8 +597,8 @@ def drive(args: argparse.Namespace, default_log_root: Path | None) -> int:
         masks = {}
     modes = tuple(m for m in P.PropulsionMode if m.key in masks)
     keys = Keyboard(ranges, modes=modes)
-    print(f"[{PROG}] driving {src.task} ({src.label}); command ranges {ranges.describe()}")
-    print(f"[{PROG}] keys: {HELP}")
+    print(f"[{PROG}] driving {src.task} ({src.label}); command ranges {ranges.describe()}", flush=True)
+    print(f"[{PROG}] keys: {HELP}", flush=True)
 
     common.limit_cpu_threads(env_cfg.sim.device if args.sim_backend == "warp" else "cpu")
     env = src.spec.env_class(env_cfg)
@@ -627,16 +627,18 @@ def drive(args: argparse.Namespace, default_log_root: Path | None) -> int:
 
 
 def _print_web_help(view, host: str) -> None:
-    print(f"[{PROG}] open {view.url} in a browser, click into the page, then drive with the keys")
+    print(f"[{PROG}] open {view.url} in a browser, click into the page, then drive with the keys", flush=True)
     if host in ("127.0.0.1", "localhost", "::1"):
         print(
             f"[{PROG}] the page is served on this machine only; from another one, tunnel it: "
-            f"ssh -L {view.port}:localhost:{view.port} <this machine>, then open http://localhost:{view.port}/"
+            f"ssh -L {view.port}:localhost:{view.port} <this machine>, then open http://localhost:{view.port}/",
+            flush=True,
         )
     else:
         print(
             f"[{PROG}] warning: serving on {host}: the viewer has no authentication, anyone who reaches "
-            "this port sees the robot and drives it"
+            "this port sees the robot and drives it",
+            flush=True,
         )
 
 
