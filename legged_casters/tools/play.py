@@ -5,6 +5,7 @@
     python play.py --policy logs/.../exported/policy.onnx
     python play.py --task caster_omni --policy zero --profile modes
     python play.py --profile constant --mode front_wheel --cmd 0.5 0 0
+    python play.py --drive                              # drive it yourself from the keyboard
 
 A task with propulsion modes runs four_wheel (all casters driven) unless --mode says
 otherwise; --profile modes steps through 4WD -> FWD -> RWD instead.
@@ -13,6 +14,11 @@ Headless (no DISPLAY, or --headless): an mp4 from MuJoCo's offscreen renderer (E
 else OSMesa) following robot 0, and PNG plots of robot 0: commanded vs measured vx, vy,
 wz; joint angles; for caster tasks the swivel angles and posture errors. With a display
 (or --viewer): MuJoCo's passive viewer. Outputs go to <run>/play/ (or --out).
+
+--drive: one robot, the command taken live from the keyboard (keys: legged_casters/deploy/
+keyboard.py, docs/driving.md), clamped to the ranges the policy was trained with. With a
+display in MuJoCo's desktop viewer; without one (or with --web) in a browser: the page is
+served on 127.0.0.1:--port (reach it through an SSH tunnel) unless --host says otherwise.
 """
 
 from __future__ import annotations
@@ -39,6 +45,8 @@ DEFAULT_CMD = (0.5, 0.0, 0.0)
 """The --cmd of the constant, slalom and modes profiles when none is given (vx, vy, wz)."""
 MODE_SEQUENCE = (("4WD", (0, 0, 0, 0)), ("FWD", (0, 0, 1, 1)), ("RWD", (1, 1, 0, 0)))
 """4WD -> FWD -> RWD: mode masks (FL, FR, RL, RR), 1 = that caster is not driven."""
+DRIVE_HOST = "127.0.0.1"
+"""--drive in a browser serves this machine only unless --host says otherwise."""
 DEFAULT_MODE = "four_wheel"
 """The propulsion mode of the other profiles on a task with modes (--mode changes it)."""
 """Observation terms that follow the operator: re-read when the command or the mode changes."""
@@ -325,6 +333,23 @@ def build_parser() -> argparse.ArgumentParser:
         help="output folder (default: <run>/play; for an export outside a run or the shipped policy: "
         "logs/<experiment>/play_<folder>)",
     )
+    g = p.add_argument_group("driving by keyboard (--drive)")
+    g.add_argument(
+        "--drive",
+        action="store_true",
+        help="drive one robot from the keyboard: W/S or Up/Down vx, A/D vy, Q/E or Left/Right wz, "
+        "1/2/3 propulsion mode, Space stop, R reset; runs until the viewer closes or --duration",
+    )
+    g.add_argument("--web", action="store_true", help="--drive: the browser viewer even with a display")
+    g.add_argument(
+        "--host",
+        default=DRIVE_HOST,
+        help="--drive in a browser: address to serve the page on (default 127.0.0.1, this machine only; "
+        "anything else is unsafe: the viewer has no authentication, whoever reaches it drives the robot)",
+    )
+    g.add_argument(
+        "--port", type=int, default=8080, help="--drive in a browser: port of the page (0: the first free from 8080)"
+    )
     common.add_env_set_flag(p)
     return p
 
@@ -345,6 +370,12 @@ def resolve_profile(args: argparse.Namespace) -> None:
 
 def play(args: argparse.Namespace, default_log_root: Path | None) -> int:
     # --- checks before the simulation starts ------------------------------------------------------
+    if args.drive:
+        if args.profile is not None or args.cmd is not None or args.mode is not None:
+            raise UsageError("--drive takes its command from the keyboard: leave --profile, --cmd and --mode out")
+        if args.headless or args.viewer:
+            raise UsageError("--drive picks its viewer itself (--web for the browser): leave --headless/--viewer out")
+        return drive(args, default_log_root)
     resolve_profile(args)
     if args.num_envs < 1:
         raise UsageError(f"--num_envs must be at least 1, got {args.num_envs}")
@@ -354,6 +385,8 @@ def play(args: argparse.Namespace, default_log_root: Path | None) -> int:
         raise UsageError("--viewer and --headless exclude each other")
     if args.width < 16 or args.height < 16 or args.fps < 1:
         raise UsageError("--width/--height must be at least 16 and --fps at least 1")
+    if args.web:
+        raise UsageError("--web goes with --drive")
     headless = args.headless or (not args.viewer and not os.environ.get("DISPLAY"))
     if args.viewer and not os.environ.get("DISPLAY"):
         raise UsageError("--viewer needs a display (DISPLAY is not set); leave it out to write a video")
@@ -538,6 +571,148 @@ def _run(args, src: PolicySource, env, policy, profile: Profile, headless: bool,
     )
     for p in paths:
         print(f"[{PROG}] wrote {p}")
+    return common.EXIT_OK
+
+
+# --- driving by keyboard -----------------------------------------------------------------------
+def drive(args: argparse.Namespace, default_log_root: Path | None) -> int:
+    """--drive: one robot, the command from the keyboard (deploy/keyboard.py), in MuJoCo's
+    desktop viewer or, with no display or --web, in a browser."""
+    from legged_casters.deploy import protocol as P
+    from legged_casters.deploy.drive import CommandRanges
+    from legged_casters.deploy.keyboard import HELP, Keyboard
+
+    if args.duration is not None and not args.duration > 0:
+        raise UsageError(f"--duration must be positive, got {args.duration}")
+    if not 0 <= args.port < 65536:
+        raise UsageError(f"--port {args.port}: not a port")
+    web = args.web or not os.environ.get("DISPLAY")
+    src = _resolve_source(args, default_log_root)
+    # one robot, and no episode time limit: it runs until it falls or is reset by hand
+    overrides = [*(args.env_set or []), "episode_length_s=1000000.0"]
+    env_cfg = common.eval_env_cfg(src.env_cfg, 1, overrides, args.sim_backend)
+    ranges = CommandRanges.from_limits(src.env_cfg.commands.limits())
+    masks = getattr(getattr(env_cfg, "modes", None), "masks", None) or {}
+    if not hasattr(src.spec.env_class, "set_mode"):
+        masks = {}
+    modes = tuple(m for m in P.PropulsionMode if m.key in masks)
+    keys = Keyboard(ranges, modes=modes)
+    print(f"[{PROG}] driving {src.task} ({src.label}); command ranges {ranges.describe()}", flush=True)
+    print(f"[{PROG}] keys: {HELP}", flush=True)
+
+    common.limit_cpu_threads(env_cfg.sim.device if args.sim_backend == "warp" else "cpu")
+    env = src.spec.env_class(env_cfg)
+    view = None
+    try:
+        policy = _make_policy(src, env)
+        import mujoco
+
+        from legged_casters.tools import drive_view
+
+        vmodel = mujoco.MjModel.from_xml_path(str(build.MODEL_FILES[env.cfg.robot]))
+        trunk = vmodel.body(go2.TRUNK_BODY).id
+        if web:
+            try:
+                view = drive_view.WebDriveView(vmodel, trunk, host=args.host, port=args.port)
+            except (RuntimeError, OSError) as err:
+                raise UsageError(f"--drive: {err}") from None
+            _print_web_help(view, args.host)
+        else:
+            view = drive_view.DesktopDriveView(vmodel, trunk)
+        return _drive_loop(args, env, policy, keys, masks, view)
+    finally:
+        if view is not None:
+            view.close()
+        env.close()
+
+
+def _print_web_help(view, host: str) -> None:
+    print(f"[{PROG}] open {view.url} in a browser, click into the page, then drive with the keys", flush=True)
+    if host in ("127.0.0.1", "localhost", "::1"):
+        print(
+            f"[{PROG}] the page is served on this machine only; from another one, tunnel it: "
+            f"ssh -L {view.port}:localhost:{view.port} <this machine>, then open http://localhost:{view.port}/",
+            flush=True,
+        )
+    else:
+        print(
+            f"[{PROG}] warning: serving on {host}: the viewer has no authentication, anyone who reaches "
+            "this port sees the robot and drives it",
+            flush=True,
+        )
+
+
+def _drive_loop(args, env, policy, keys, masks: dict, view) -> int:
+    """Step the policy in real time with the keyboard's command until the viewer closes
+    (or --duration); print the command and the measured speed on each change and every 2 s."""
+
+    def mode_of(drive):
+        if not masks:
+            return None
+        key = drive.propulsion.key
+        return key, tuple(int(x) for x in masks[key])
+
+    d = keys.drive()
+    cmd, mode = (d.vx, d.vy, d.wz), mode_of(d)
+    _apply(env, cmd, mode)
+    obs = env.reset()
+    _apply(env, cmd, mode)
+    obs = env.refresh_commands(obs)
+    dt = env.dt
+    show_every = max(1, int(round(1.0 / (30 * dt))))
+    steps = None if args.duration is None else int(math.ceil(args.duration / dt))
+    measured = np.zeros(3)
+    last_print, k, falls = -math.inf, 0, 0
+    wall0 = time.time()
+    pace0, k0 = wall0, 0  # real-time pacing: step k is due at pace0 + (k - k0) * dt
+    try:
+        while view.is_running() and (steps is None or k < steps):
+            pressed = view.keys()
+            for key in pressed:
+                keys.press(key)
+            d = keys.drive()
+            new_cmd, new_mode = (d.vx, d.vy, d.wz), mode_of(d)
+            changed = bool(pressed)
+            if d.reset:
+                obs = env.reset()
+                pace0, k0 = time.time(), k
+            if new_cmd != cmd or new_mode != mode or d.reset:
+                cmd, mode = new_cmd, new_mode
+                _apply(env, cmd, mode)
+                obs = env.refresh_commands(obs)  # the policy sees the new command now
+                changed = True
+            with torch.no_grad():
+                actions = policy(obs)
+            obs, _, dones, _ = env.step(actions)
+            k += 1
+            if bool(dones[0]):
+                falls += 1
+                if mode is not None:
+                    _apply(env, cmd, mode)
+                    obs = env.refresh_commands(obs)
+            v = np.array([float(env.base_lin_vel[0, 0]), float(env.base_lin_vel[0, 1]), float(env.base_ang_vel[0, 2])])
+            measured += 0.1 * (v - measured)  # ~0.2 s mean
+            c = env.commands[0].tolist()
+            state = "STOP (R: reset)" if keys.latch.stopped else (mode[0] if mode else "")
+            lines = (
+                f"command  vx {c[0]:+.2f}  vy {c[1]:+.2f}  wz {c[2]:+.2f}  {state}",
+                f"measured vx {measured[0]:+.2f}  vy {measured[1]:+.2f}  wz {measured[2]:+.2f}",
+                "W/S Up/Down vx  A/D vy  Q/E Left/Right wz  1/2/3 mode  Space stop  R reset",
+            )
+            if changed or k * dt - last_print >= 2.0 or bool(dones[0]):
+                last_print = k * dt
+                why = f" (keys {' '.join(pressed)})" if pressed else (" (fell: reset)" if bool(dones[0]) else "")
+                print(f"[{PROG}] drive t {k * dt:6.1f} s: {lines[0]} | {lines[1]}{why}", flush=True)
+            if k % show_every == 0:
+                view.show(env.sim.qpos[0].cpu().double().numpy(), lines)
+            late = time.time() - (pace0 + (k - k0) * dt)
+            if late < 0:
+                time.sleep(-late)
+            elif late > 0.5:  # slower than real time: do not catch up in a burst
+                pace0, k0 = time.time(), k
+    except KeyboardInterrupt:
+        print(f"\n[{PROG}] stopped")
+    print(f"[{PROG}] drove {k * dt:.1f} s simulated in {time.time() - wall0:.1f} s; robot fell {falls} times")
     return common.EXIT_OK
 
 
