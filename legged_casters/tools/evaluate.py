@@ -826,8 +826,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--robot-clock",
         action="store_true",
-        help="only the conditions of the robot-clock check (5 ms, 2 ms physics, 20 ms action latency) and its tolerance "
-        "table; with --checkpoints each checkpoint under all three, ranked: fewest falls at 5 ms, then within the "
+        help="only the conditions of the robot-clock check (5 ms, 2 ms physics, 20 ms action latency) and its "
+        "tolerance table; with --checkpoints each checkpoint under all three, ranked: fewest falls at 5 ms, then within the "
         "bar, then fewest falls in all, then most checks passed (--seeds counts the falls over several draws)",
     )
     return p
@@ -1093,8 +1093,8 @@ def format_robot_clock_ranking(rows: list[dict], n_seeds: int) -> str:
     that condition is within the bar; then whether all are."""
     names = [n.split(" (")[0] for n in ROBOT_CLOCK]
     lines = [
-        f"the robot-clock bar: every error check within {SIM2SIM_TOLERANCE['lin']} m/s ({SIM2SIM_TOLERANCE['ang']} rad/s "
-        f"for wz) of its training-condition value, and no more falls ({n_seeds} seed{'s' if n_seeds > 1 else ''})",
+        f"the robot-clock bar: every error check within {SIM2SIM_TOLERANCE['lin']} m/s "
+        f"({SIM2SIM_TOLERANCE['ang']} rad/s for wz) of its training-condition value, and no more falls ({n_seeds} seed{'s' if n_seeds > 1 else ''})",
         f"| rank | checkpoint | iteration | checks passed | falls ({' / '.join(names)}) | "
         + " | ".join(f"{n}: largest change, m/s; rad/s: within" for n in names[1:])
         + " | within |",
