@@ -827,8 +827,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--robot-clock",
         action="store_true",
         help="only the conditions of the robot-clock check (5 ms, 2 ms physics, 20 ms action latency) and its "
-        "tolerance table; with --checkpoints each checkpoint under all three, ranked: fewest falls at 5 ms, then within the "
-        "bar, then fewest falls in all, then most checks passed (--seeds counts the falls over several draws)",
+        "tolerance table; with --checkpoints each checkpoint under all three, ranked: fewest falls at 5 ms, then "
+        "within the bar, then fewest falls in all, then most checks passed (--seeds counts the falls over several "
+        "draws)",
     )
     return p
 
@@ -1094,7 +1095,8 @@ def format_robot_clock_ranking(rows: list[dict], n_seeds: int) -> str:
     names = [n.split(" (")[0] for n in ROBOT_CLOCK]
     lines = [
         f"the robot-clock bar: every error check within {SIM2SIM_TOLERANCE['lin']} m/s "
-        f"({SIM2SIM_TOLERANCE['ang']} rad/s for wz) of its training-condition value, and no more falls ({n_seeds} seed{'s' if n_seeds > 1 else ''})",
+        f"({SIM2SIM_TOLERANCE['ang']} rad/s for wz) of its training-condition value, and no more falls "
+        f"({n_seeds} seed{'s' if n_seeds > 1 else ''})",
         f"| rank | checkpoint | iteration | checks passed | falls ({' / '.join(names)}) | "
         + " | ".join(f"{n}: largest change, m/s; rad/s: within" for n in names[1:])
         + " | within |",
