@@ -22,7 +22,7 @@ import zenoh
 
 from legged_casters.deploy import protocol as P
 from legged_casters.deploy import transport
-from legged_casters.deploy.bridge import Bridge, BridgeConfig, ZenohBridge
+from legged_casters.deploy.bridge import Bridge, BridgeConfig, ZenohBridge, warm_up
 from legged_casters.deploy.policy import (
     ObservationBuilder,
     PolicyFormatError,
@@ -420,6 +420,32 @@ def _bridge(tmp_path, rec, **kw) -> Bridge:
     kw.setdefault("standup", "linear")  # short: these tests are about what follows it
     cfg = BridgeConfig(standup_time=kw.pop("standup_time", 0.1), **kw)
     return Bridge(meta, cfg, rec)
+
+
+def test_warm_up_leaves_no_first_time_work_for_the_control_path(tmp_path):
+    """bridge.warm_up (run by the bridge before its session opens) takes a scratch bridge
+    through righting, the fold, the policy, a stop, a reset and a stale-state fault, with
+    a status after every state; after it, a real bridge's stand-up, policy steps and
+    statuses import no module (a first np.percentile imported numpy.ma inside the status,
+    under the lock that the next state waits on)."""
+    meta = load_meta(write_policy(tmp_path))
+    runner = PolicyRunner(meta)
+    scratch = warm_up(meta, BridgeConfig(), runner)
+    went = [(s, f) for _, s, f in scratch.transitions]
+    for step in [(P.BridgeState.RUNNING, P.Fault.NONE), (P.BridgeState.STOPPED, P.Fault.OPERATOR_STOP),
+                 (P.BridgeState.WAITING, P.Fault.NONE), (P.BridgeState.DAMPING, P.Fault.STALE_STATE)]:  # fmt: skip
+        assert step in went, went
+    assert scratch.policy_steps > 0 and any("righting" in n for n in scratch.notes)
+    assert "numpy.ma" in sys.modules
+    before = set(sys.modules)
+    rec = Recorder()
+    b = Bridge(meta, BridgeConfig(standup="linear", standup_time=0.1, max_state_age=60.0), rec, runner)
+    sender = P.Sender()
+    for k in range(12):
+        b.on_state(standing_state(sender, stamp_ns=k * int(DT * 1e9)).encode())
+        b.status().encode()
+    assert b.state is P.BridgeState.RUNNING and b.policy_steps > 0 and b.status().rate_hz > 0
+    assert set(sys.modules) == before, sorted(set(sys.modules) - before)
 
 
 def test_no_motion_before_state_then_linear_standup_ramp(tmp_path, realtime):
