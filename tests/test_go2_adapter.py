@@ -14,7 +14,18 @@ import time
 
 import numpy as np
 import pytest
-from test_deploy import REPO, LoopProbe, _spawn, _stop, free_port, realtime, wait_for  # noqa: F401 (fixture)
+from test_deploy import (  # noqa: F401 (realtime: a fixture)
+    LOAD_SLACK_S,
+    LOAD_STATE_AGE_MS,
+    LOAD_WATCHDOG_S,
+    REPO,
+    LoopProbe,
+    _spawn,
+    _stop,
+    free_port,
+    realtime,
+    wait_for,
+)
 from test_soak import signal_when_ready
 
 from legged_casters.deploy import protocol as P
@@ -236,13 +247,15 @@ def test_full_loop_fake_go2_adapter_bridge(tmp_path):
 
     def start_bridge():
         return _spawn("bridge", "--policy", str(policy), "--connect", f"tcp/127.0.0.1:{port}", "--namespace", ns,
-                      "--standup", "linear", "--standup-time", "1.0", "--max-state-age-ms", "100")  # fmt: skip
+                      "--standup", "linear", "--standup-time", "1.0",
+                      "--max-state-age-ms", LOAD_STATE_AGE_MS)  # fmt: skip
 
     try:
         assert wait_for(lambda: len(truths) > 5, 30.0), "fake Go2 did not start"
         adapter = _spawn(
-            "go2_adapter", "--connect", f"tcp/127.0.0.1:{port}", "--cmd-rate", "200", "--watchdog-ms", "100", *dds
-        )
+            "go2_adapter", "--connect", f"tcp/127.0.0.1:{port}", "--cmd-rate", "200",
+            "--watchdog-ms", f"{LOAD_WATCHDOG_S * 1e3:g}", *dds,
+        )  # fmt: skip
         assert wait_for(lambda: len(states) > 5, 30.0), "adapter forwards no LowState"
         assert states[-1][1].robot_mode == P.CommandMode.NONE
         bridge = start_bridge()
@@ -261,13 +274,14 @@ def test_full_loop_fake_go2_adapter_bridge(tmp_path):
         st = statuses[-1]
         assert st.state == P.BridgeState.RUNNING and sum(st.rejected) == 0
 
-        # the bridge dies: the adapter writes damping within its watchdog + one state period
+        # the bridge dies: the adapter writes damping on its watchdog (+ a state period, + slack on a loaded machine)
         bridge.send_signal(signal.SIGKILL)
         bridge.wait(10)
         last_cmd = cmds[-1][0]
-        assert wait_for(lambda: states[-1][1].robot_mode == P.CommandMode.DAMPING, 2.0)
+        assert wait_for(lambda: states[-1][1].robot_mode == P.CommandMode.DAMPING, 2.0 + LOAD_SLACK_S)
         t_damp = next(t for t, s in states if t > last_cmd and s.robot_mode == P.CommandMode.DAMPING)
-        assert 0.08 <= t_damp - last_cmd <= 0.1 + 0.05, f"adapter damped {1e3 * (t_damp - last_cmd):.0f} ms after"
+        took = f"adapter damped {1e3 * (t_damp - last_cmd):.0f} ms after"
+        assert LOAD_WATCHDOG_S - 0.02 <= t_damp - last_cmd <= LOAD_WATCHDOG_S + 0.05 + LOAD_SLACK_S, took
 
         # a new bridge takes over; then the adapter dies: the bridge faults on stale state
         n1 = len(statuses)
@@ -276,7 +290,7 @@ def test_full_loop_fake_go2_adapter_bridge(tmp_path):
         assert wait_for(lambda: states[-1][1].robot_mode == P.CommandMode.POLICY, 5.0)
         adapter.send_signal(signal.SIGKILL)
         adapter.wait(10)
-        assert wait_for(lambda: statuses[-1].fault == P.Fault.STALE_STATE, 2.0), "bridge did not fault"
+        assert wait_for(lambda: statuses[-1].fault == P.Fault.STALE_STATE, 2.0 + LOAD_SLACK_S), "no fault"
         time.sleep(0.3)  # past the fake robot's own 100 ms watchdog
     finally:
         probe.close()
