@@ -596,7 +596,7 @@ def warm_up(meta: PolicyMeta, config: BridgeConfig, runner: PolicyRunner) -> Bri
     after every state, then operator commands, a stop, a reset and a stale-state fault.
 
     A first call can be slow: the first status with step statistics imported numpy.ma
-    (np.percentile's lazy import, 15-20 ms) while it held the lock that the next state
+    (np.percentile's lazy import, 15-22 ms) while it held the lock that the next state
     waits on, and that state's command came that much late, or the state went stale."""
     # a staleness limit that these first calls cannot trip (the fault is taken on purpose at the end)
     scratch = Bridge(meta, dataclasses.replace(config, max_state_age=60.0), lambda key, payload: None, runner)
@@ -822,12 +822,13 @@ def main(argv: list[str] | None = None) -> int:
         f"keys {zb.keys['state']} -> {zb.keys['cmd']}",
         flush=True,
     )
+    seen = 0
     try:
         transport.arm_signals()
         t0 = time.monotonic()
         t_end = t0 + args.duration if args.duration > 0 else float("inf")
         warned = False
-        seen, noted, next_summary = 0, 0, t0 + args.summary_every
+        noted, next_summary = 0, t0 + args.summary_every
         while time.monotonic() < t_end:
             time.sleep(min(0.2, max(0.0, t_end - time.monotonic())))
             seen = _print_transitions(zb.bridge, seen)
@@ -851,6 +852,7 @@ def main(argv: list[str] | None = None) -> int:
         st = zb.bridge.status()
         zb.stop()
         session.close()
+    _print_transitions(zb.bridge, seen)  # a change in the last 0.2 s too (a fault, with what tripped it)
     print(
         f"bridge: state {P.BridgeState(st.state).name} ({P.Fault(st.fault).name}), "
         f"policy steps {st.policy_steps}, commands {st.commands}, "
