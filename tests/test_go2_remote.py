@@ -12,7 +12,7 @@ import time
 import numpy as np
 import pytest
 from sdk_standin import Bus, new_lowstate
-from test_deploy import _spawn, _stop, free_port, peer, realtime, wait_for  # noqa: F401 (fixture)
+from test_deploy import LOAD_STATE_AGE_MS, _spawn, _stop, free_port, peer, realtime, wait_for  # noqa: F401 (fixture)
 
 from legged_casters.deploy import drive, unitree
 from legged_casters.deploy import protocol as P
@@ -311,7 +311,8 @@ def test_remote_drives_and_stops_a_bridge_through_the_adapter(tmp_path):
     robot.start()
     a.start(200.0)
     bridge = _spawn("bridge", "--policy", str(policy), "--connect", f"tcp/127.0.0.1:{port}", "--namespace", ns,
-                    "--standup", "linear", "--standup-time", "1.0", "--max-state-age-ms", "100")  # fmt: skip
+                    "--standup", "linear", "--standup-time", "1.0",
+                    "--max-state-age-ms", LOAD_STATE_AGE_MS)  # fmt: skip
     try:
         robot.set_wireless_remote(enc())  # a remote that reports, sticks released
         assert wait_for(lambda: statuses and statuses[-1].state == P.BridgeState.RUNNING, 60.0), "bridge not running"

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
-from test_deploy import free_port, wait_for
+from test_deploy import LOAD_STATE_AGE_MS, free_port, wait_for
 
 from legged_casters.deploy import certs, transport
 from legged_casters.deploy import protocol as P
@@ -404,7 +404,7 @@ def test_secured_chain_runs_and_ignores_wrong_role_messages(pki, tmp_path):
     sec = ["--secure", str(d), "--namespace", NS]
     bridge = _spawn(
         "bridge", "--policy", str(policy), "--listen", f"tls/127.0.0.1:{pb}", *sec,
-        "--standup-time", "0.5", "--operator-timeout", "0", "--max-state-age-ms", "200",
+        "--standup-time", "0.5", "--operator-timeout", "0", "--max-state-age-ms", LOAD_STATE_AGE_MS,
     )  # fmt: skip
     robot = _spawn(
         "sim_robot", "--listen", f"tls/127.0.0.1:{pr}", "--connect", f"tls/127.0.0.1:{pb}", *sec,

@@ -126,10 +126,11 @@ class RateStats:
     def reset(self) -> None:
         self.last = None
 
-    def summary(self) -> dict[str, float]:
-        if not self.periods:
+    def summary(self, periods: np.ndarray | None = None) -> dict[str, float]:
+        """Rate and jitter of `periods` (s; default: this window's)."""
+        p = np.asarray(self.periods if periods is None else periods, np.float64)
+        if p.size == 0:
             return {"rate_hz": 0.0, "period_mean_ms": 0.0, "jitter_p99_ms": 0.0, "jitter_max_ms": 0.0}
-        p = np.asarray(self.periods)
         jit = np.abs(p - self.nominal)
         return {
             "rate_hz": float(1.0 / p.mean()),
@@ -321,11 +322,13 @@ class Bridge:
         self._send_command(P.CommandMode.DAMPING, self._clip_q(q), np.zeros(self.n), self.damp_kd, state_seq)
 
     def status(self) -> P.BridgeStatus:
+        """The status message. Only copies are made under the lock; the statistics are
+        computed after it is released, so a state arriving meanwhile is not held up."""
         with self._cv:
             age = (time.monotonic() - self._latest_arrival) * 1e3 if self._latest is not None else 0.0
-            stats = self.rate.summary()
-            inf = float(np.mean(self.rate.inference) * 1e3) if self.rate.inference else 0.0
-            return P.BridgeStatus(
+            periods = np.fromiter(self.rate.periods, np.float64, len(self.rate.periods))
+            inference = np.fromiter(self.rate.inference, np.float64, len(self.rate.inference))
+            fields = dict(
                 state=self.state,
                 fault=self.fault,
                 rejected=[self.rejected[r] for r in P.REJECT_REASONS],
@@ -336,11 +339,11 @@ class Bridge:
                 received_operator=self.received_operator,
                 commands=self.commands_sent,
                 policy_steps=self.policy_steps,
-                inference_mean_ms=inf,
                 state_age_ms=age,
                 header=self.status_sender.next_header(),
-                **stats,
             )
+        inf = float(inference.mean() * 1e3) if inference.size else 0.0
+        return P.BridgeStatus(inference_mean_ms=inf, **fields, **self.rate.summary(periods))
 
     # --- state machine ------------------------------------------------------------------
     def _enter(self, state: P.BridgeState, fault: P.Fault = P.Fault.NONE) -> None:
@@ -586,6 +589,57 @@ class Bridge:
             self._thread.join(timeout=2.0)
 
 
+def warm_up(meta: PolicyMeta, config: BridgeConfig, runner: PolicyRunner) -> Bridge:
+    """Run every first-time path of the control step and of the status once, before the
+    session opens: a scratch Bridge (sharing `runner`, publishing nowhere) takes a robot
+    lying on its side through righting, the stand-up and a few policy steps, with a status
+    after every state, then operator commands, a stop, a reset and a stale-state fault.
+
+    A first call can be slow: the first status with step statistics imported numpy.ma
+    (np.percentile's lazy import, 15-22 ms) while it held the lock that the next state
+    waits on, and that state's command came that much late, or the state went stale."""
+    # a staleness limit that these first calls cannot trip (the fault is taken on purpose at the end)
+    scratch = Bridge(meta, dataclasses.replace(config, max_state_age=60.0), lambda key, payload: None, runner)
+    dt_ns = int(round(meta.control_dt * 1e9))
+    states, operator = P.Sender(), P.Sender()
+    n = meta.num_joints
+    on_side = [math.cos(math.pi / 4), math.sin(math.pi / 4), 0.0, 0.0]  # rolled 90 deg: righting first
+    upright = [1.0, 0.0, 0.0, 0.0]
+    q = meta.default_joint_pos.astype(np.float64).tolist()
+
+    def state(k: int, quat) -> bytes:
+        h = states.next_header()
+        h.stamp_ns = k * dt_ns
+        return P.RobotState(quat=quat, gyro=[0.0] * 3, q=q, dq=[0.0] * n, header=h).encode()
+
+    def command(flags: int = 0) -> bytes:
+        mode = next(iter(scratch.mode_masks)).value
+        msg = P.OperatorCommand(vx=0.2, vy=0.0, wz=0.1, propulsion=mode, flags=flags, header=operator.next_header())
+        return msg.encode()
+
+    limit = int(60.0 / meta.control_dt)  # a bound: righting + fold + lift take a few seconds of steps
+    running = 0
+    for k in range(limit):
+        scratch.on_state(state(k, on_side if k < 3 else upright))
+        scratch.status().encode()
+        if k == 5:
+            scratch.on_operator(command())
+        if scratch.state is P.BridgeState.RUNNING:
+            running += 1
+            if running > 5:
+                break
+        elif scratch.state is not P.BridgeState.STANDUP:
+            break  # not expected; what ran so far is warm
+    status_line(scratch.status())
+    scratch.on_operator(command(P.OP_STOP))
+    scratch.on_operator(command(P.OP_RESET))
+    scratch.on_state(state(limit, upright))  # a new stand-up
+    with scratch._cv:
+        scratch._check_stale(time.monotonic() + 120.0)  # the stale-state fault and its damping
+    scratch.status().encode()
+    return scratch  # for a look at what it went through (transitions, notes)
+
+
 class ZenohBridge:
     """A Bridge wired to a zenoh session: subscribes to state and operator, publishes cmd and status."""
 
@@ -756,6 +810,7 @@ def main(argv: list[str] | None = None) -> int:
     except (PolicyFormatError, FileNotFoundError) as e:
         print(f"bridge: error: {e}", file=sys.stderr)
         return 2
+    warm_up(meta, cfg, runner)  # and every first-time path of the control step and the status
     try:
         session = transport.open_session(args)
     except transport.SessionError as err:
@@ -767,12 +822,13 @@ def main(argv: list[str] | None = None) -> int:
         f"keys {zb.keys['state']} -> {zb.keys['cmd']}",
         flush=True,
     )
+    seen = 0
     try:
         transport.arm_signals()
         t0 = time.monotonic()
         t_end = t0 + args.duration if args.duration > 0 else float("inf")
         warned = False
-        seen, noted, next_summary = 0, 0, t0 + args.summary_every
+        noted, next_summary = 0, t0 + args.summary_every
         while time.monotonic() < t_end:
             time.sleep(min(0.2, max(0.0, t_end - time.monotonic())))
             seen = _print_transitions(zb.bridge, seen)
@@ -796,6 +852,7 @@ def main(argv: list[str] | None = None) -> int:
         st = zb.bridge.status()
         zb.stop()
         session.close()
+    _print_transitions(zb.bridge, seen)  # a change in the last 0.2 s too (a fault, with what tripped it)
     print(
         f"bridge: state {P.BridgeState(st.state).name} ({P.Fault(st.fault).name}), "
         f"policy steps {st.policy_steps}, commands {st.commands}, "

@@ -21,8 +21,12 @@ What it does:
   q, dq, kp, kd and tau 0, unused slots off, head/level_flag as Unitree's examples set
   them, and the CRC the robot checks.
 * Its own watchdog: no valid command for ``--watchdog-ms`` (default 100) -> it writes
-  damping (kp 0, kd ``--damping-kd``) until commands resume. Before the first command
-  it writes nothing, so the robot keeps whatever it was doing.
+  damping (kp 0, kd ``--damping-kd``) until commands resume, from the first LowCmd tick
+  past the limit: the first damping LowCmd leaves between ``--watchdog-ms`` and one
+  ``--cmd-rate`` period later (100-102 ms at the defaults, plus this process's
+  scheduling delay), timed from the last command's arrival here; the summary lines
+  give the measured figure. Before the first command it writes nothing, so the robot
+  keeps whatever it was doing.
 * Safety: on any interface other than loopback it refuses to start unless told
   ``--real-robot`` (or ``--dry-run``, which never writes ``rt/lowcmd``).
 * Live status: a line on every change of what it sends (NONE -> STANDUP -> POLICY,
@@ -94,6 +98,10 @@ class Go2Adapter(robot_side.TakesCommands):
         self.lowstates = 0
         self.lowcmds_written = 0
         self.last_written: tuple[np.ndarray, ...] | None = None
+        self.written_mode = P.CommandMode.NONE
+        self.first_writes: list[tuple[float, P.CommandMode, str, float]] = []
+        """(time the write returned, mode, why, arrival of the newest command) of the first
+        LowCmd of each new mode: what left for the robot, and when."""
         self._running = False
         self._thread: threading.Thread | None = None
         # the Go2 remote (None: not used)
@@ -212,7 +220,15 @@ class Go2Adapter(robot_side.TakesCommands):
         if self.write_lowcmd is not None:
             self.write_lowcmd(self.lowcmd)
         self.lowcmds_written += 1
+        if mode != self.written_mode:
+            self.written_mode = mode
+            self.first_writes.append((time.monotonic(), mode, why, self.inbox.latest()[1]))
         self._remote_tick(now)
+
+    def watchdog_delays(self) -> list[float]:
+        """For each time the watchdog fired: seconds from the last command's arrival to the
+        return of the first damping LowCmd's write."""
+        return [t - arrival for t, _, why, arrival in self.first_writes if why == robot_side.WATCHDOG_WHY]
 
     def _remote_tick(self, now: float) -> None:
         """After the LowCmd: the remote's operator command, if one is due. A failing publish
@@ -371,6 +387,8 @@ def main(argv: list[str] | None = None) -> int:
             f"LowCmd {written:.0f}/s{' (dry run, not sent)' if args.dry_run else ''}, "
             f"{a.inbox.round_trip.summary()}, bad LowState {a.bad_lowstates}, rejected {rejected or 'none'}"
         )
+        if delays := a.watchdog_delays():
+            line += f"; watchdog damping written {1e3 * delays[-1]:.1f} ms after the last command"
         if remote is not None:
             line += f"; remote: {a.operator_sent} operator commands sent ({a.operator_errors} failed)"
             line += f", stopped ({'+'.join(remote.mapping.reset)} resets)" if remote.stopped else ""
@@ -389,7 +407,8 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"go2_adapter: LowState {a.lowstates} (bad {a.bad_lowstates}), commands {a.commands_received}, "
         f"LowCmd {a.lowcmds_written}{' (dry run)' if args.dry_run else ''}, rejected {a.rejected}, "
-        f"mode {a.mode.name}",
+        f"mode {a.mode.name}"
+        + "".join(f"; watchdog damping written {1e3 * d:.1f} ms after the last command" for d in a.watchdog_delays()),
         flush=True,
     )
     return 0
