@@ -1384,9 +1384,18 @@ def test_full_loop_wheel_robot_runs_the_shipped_wheel_policy(tmp_path, realtime)
 
 
 def test_shipped_caster_export_still_loads_and_runs_in_the_bridge(tmp_path):
-    """A 12-joint export written before the wheel robot (no joint_control; the policy.yaml of an
-    earlier shipped caster policy, kept in tests/data) runs unchanged."""
-    meta = load_meta(REPO / "tests" / "data" / "caster_policy_before_joint_control.yaml")
+    """The shipped caster export runs in the bridge, also as a 12-joint export written before the
+    wheel robot was (its policy.yaml without joint_control, which then means all position)."""
+    import shutil
+
+    import yaml
+
+    old = tmp_path / "caster_omni"
+    shutil.copytree(REPO / "resources" / "policies" / "caster_omni", old)
+    data = yaml.safe_load((old / "policy.yaml").read_text())
+    assert data.pop("joint_control") == ["position"] * 12
+    (old / "policy.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    meta = load_meta(old)
     assert meta.num_joints == 12 and all(meta.position_mask) and meta.velocity_action_scale == 0.0
     sent = []
     cfg = BridgeConfig(standup="linear", standup_time=0.02, operator_timeout=0.0)
