@@ -36,15 +36,15 @@ def test_observation_layout(env):
         "commands", "mode_mask", "ang_vel", "projected_gravity", "joint_pos", "joint_vel", "actions",
     ]  # fmt: skip
     assert [(n, d) for n, d, _ in env.obs_layout["critic"]] == [
-        ("caster_zaxis", 12), ("swivel_pos", 4), ("swivel_vel", 4), ("lin_vel", 3),
+        ("caster_zaxis", 12), ("swivel_pos", 4), ("swivel_vel", 4), ("lin_vel", 3), ("ground_gravity", 3),
     ]  # fmt: skip
     assert env.observation_dims() == {
-        "policy": 3 + 4 + 3 + 3 + 12 + 12 + 12, "critic": 12 + 4 + 4 + 3, "estimator_target": 3,
+        "policy": 3 + 4 + 3 + 3 + 12 + 12 + 12, "critic": 12 + 4 + 4 + 3 + 3, "estimator_target": 3,
     }  # fmt: skip
     obs = env.get_observations()
     # The velocity estimator's regression target: the trunk velocity in the trunk frame.
     assert torch.equal(obs["estimator_target"], env.base_lin_vel)
-    assert obs["policy"].shape == (4, 49) and obs["critic"].shape == (4, 23)
+    assert obs["policy"].shape == (4, 49) and obs["critic"].shape == (4, 26)
     # The critic's swivel axes are the model's caster-base z axes (unit vectors, near vertical standing).
     z = obs["critic"][:, _slice(env, "critic", "caster_zaxis")].view(4, 4, 3)
     assert torch.allclose(z.norm(dim=-1), torch.ones(4, 4), atol=1e-5)
@@ -176,7 +176,7 @@ def test_two_iterations_of_rsl_rl_ppo_with_the_asymmetric_critic(tmp_path):
     cfg = registry.get_task("caster_omni_paper").train_cfg.to_rsl_rl()
     cfg["num_steps_per_env"] = 8
     runner = OnPolicyRunner(e, copy.deepcopy(cfg), log_dir=str(tmp_path), device="cpu")
-    assert runner.alg.actor.obs_dim == 49 and runner.alg.critic.obs_dim == 49 + 23
+    assert runner.alg.actor.obs_dim == 49 and runner.alg.critic.obs_dim == 49 + 26
     runner.learn(num_learning_iterations=2)
     assert runner.current_learning_iteration == 1
 
