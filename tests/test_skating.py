@@ -223,7 +223,7 @@ def test_skating_task_observes_the_clock_and_runs_at_5ms(env):
     names = [n for n, _, _ in env.obs_layout["policy"]]
     assert names == ["commands", "mode_mask", "ang_vel", "projected_gravity", "joint_pos", "joint_vel", "actions",
                      "proprio_history", "gait_phase"]  # fmt: skip
-    assert env.observation_dims()["policy"] == 49 + 10 * 42 + 2
+    assert env.observation_dims()["policy"] == 49 + env.cfg.history_length * 42 + 2 and env.cfg.history_length == 50
     assert env.model.opt.timestep == pytest.approx(0.005) and env.dt == pytest.approx(0.02)
     assert env.model.geom_solref[:, 0].min() >= 0.01 - 1e-9  # raised to 2 x timestep
 
@@ -306,6 +306,7 @@ def test_a_fixed_exploration_std_stays_put_while_ppo_learns(tmp_path):
     for learn in (True, False):
         train_cfg = copy.deepcopy(registry.get_task(TASK).train_cfg)
         train_cfg.policy.learn_noise_std = learn
+        train_cfg.policy.noise_std_schedule = ()  # the task's schedule sets the std itself
         cfg = train_cfg.for_env(e)
         cfg["num_steps_per_env"] = 8
         runner = OnPolicyRunner(e, cfg, log_dir=str(tmp_path / str(learn)), device="cpu")
@@ -608,7 +609,9 @@ def test_evaluation_of_a_standing_policy_reports_the_command_as_error():
 def test_bridge_rebuilds_the_whole_observation_with_clock_and_history(tmp_path):
     """Drive the env, feed its measured state to the bridge's observation builder step by
     step: the two observations agree (noise off), history and clock included."""
-    e = registry.make_env(TASK, CPU + ["history_length=3", "noise.enabled=false"], num_envs=1)
+    # flat ground: the bridge builds projected gravity from the IMU's orientation, and on the
+    # env's tilted-gravity slopes the simulator's world frame is the ground's, not gravity's
+    e = registry.make_env(TASK, CPU + ["history_length=3", "noise.enabled=false", "terrain.slope_deg=0"], num_envs=1)
     actor = export.build_actor(e, registry.get_task(TASK).train_cfg)
     export.export_policy(actor, export.policy_metadata(e, TASK), tmp_path)
     bm = load_meta(tmp_path)
@@ -646,7 +649,7 @@ def test_play_feeds_the_policy_the_observation_the_bridge_builds(tmp_path, monke
     def make_policy(src, env):
         (tmp_path / "policy.yaml").write_text(export.metadata_yaml(export.policy_metadata(env, TASK)))
         meta = load_meta(tmp_path)
-        assert meta.history_length == 10
+        assert meta.history_length == env.cfg.history_length
         builder = ObservationBuilder(meta)
         start = env.policy_obs_slices()["proprio_history"][0]
         width = env.history.shape[2]
@@ -666,6 +669,7 @@ def test_play_feeds_the_policy_the_observation_the_bridge_builds(tmp_path, monke
     monkeypatch.setattr(play, "_make_policy", make_policy)
     argv = ["--task", TASK, "--policy", "zero", "--profile", "steps", "--duration", "0.5", "--headless"]
     argv += ["--no_video", "--num_envs", "3", "--out", str(tmp_path / "play"), "--set", "noise.enabled=false"]
+    argv += ["--set", "terrain.slope_deg=0"]
     assert play.main(argv) == 0, capsys.readouterr().err
     newest = [h for h, _, _ in seen]
     assert len(seen) == 25 and not newest[0].any() and newest[1].any()
@@ -676,7 +680,9 @@ def test_play_feeds_the_policy_the_observation_the_bridge_builds(tmp_path, monke
 
 def test_single_axis_commands_keep_one_component():
     e = registry.make_env(
-        TASK, CPU + ["commands.single_axis_fraction=1.0", "commands.standing_fraction=0"], num_envs=64
+        TASK,
+        CPU + ["commands.single_axis_fraction=1.0", "commands.standing_fraction=0", "commands.reverse_fraction=0"],
+        num_envs=64,
     )
     e.resample_commands(torch.arange(64))
     nonzero = (e.commands != 0).sum(dim=1)

@@ -519,7 +519,12 @@ def select_checkpoint(args: argparse.Namespace, default_log_root: Path | None) -
     return Selection(task, spec, run_dir, ckpt_path, ckpt, env_cfg, train_cfg)
 
 
-EVAL_OVERRIDES = {"noise.enabled": False, "domain_rand.push_robots": False, "terrain.spawn_on_course": False}
+EVAL_OVERRIDES = {
+    "noise.enabled": False,
+    "domain_rand.push_robots": False,
+    "terrain.spawn_on_course": False,
+    "terrain.slope_deg": 0.0,
+}
 """Evaluation and play envs: no observation noise, no random pushes, robots start at the
 origin (a policy trained on a terrain course keeps its course, not its random starts)."""
 
