@@ -20,6 +20,7 @@ REFLECT = np.diag([1.0, -1.0, 1.0])
 
 QUIET = [
     "sim.backend=cpu",
+    "terrain.slope_deg=0",
     "noise.enabled=false",
     "domain_rand.randomize_friction=false",
     "domain_rand.randomize_base_mass=false",
@@ -28,6 +29,7 @@ QUIET = [
     "domain_rand.push_robots=false",
     "domain_rand.joint_damping={}",
     "domain_rand.joint_frictionloss_scale={}",
+    "domain_rand.action_latency_range=[0,0]",
     "commands.resampling_time=100",
 ]
 
@@ -270,7 +272,7 @@ def test_symmetry_estimator_mirrors_the_estimators_samples_and_needs_an_estimato
     from legged_casters.learning.runner import CheckpointingRunner
 
     env = registry.make_env("caster_omni", ["sim.backend=cpu", "seed=3"], num_envs=4)
-    _, cfg = registry.task_configs("caster_omni", train_overrides=["symmetry.estimator=true"])
+    _, cfg = registry.task_configs("caster_omni", train_overrides=["symmetry.estimator=true", "symmetry.mode=none"])
     no_estimator = copy.deepcopy(cfg)
     no_estimator.estimator.hidden_dims = ()
     with pytest.raises(ConfigError, match="symmetry.estimator=true .* needs the estimator"):

@@ -500,6 +500,7 @@ def stage_overflow(settings: Settings, work: Path, report) -> dict:
 def _train_argv(settings: Settings, work: Path, minutes: float | None) -> list[str]:
     argv = ["--task", "caster_omni", "--sim_backend", "warp", "--device", settings.device]
     argv += ["--log_root", str(work / "runs"), "--run_name", "gpu_check", "--eval_every", "0", "--console", "line"]
+    argv += ["--train-set", "select_last=0"]  # a throughput check: no checkpoint selection at the end
     if minutes is not None:
         argv += ["--max_minutes", f"{minutes:.2f}"]
     return argv + settings.train_args
@@ -591,6 +592,7 @@ def stage_multi_gpu(settings: Settings, work: Path, report, timeout: float) -> d
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nnodes=1", f"--nproc_per_node={count}"]
     cmd += [str(REPO / "train.py"), "--task", "caster_omni", "--sim_backend", "warp", "--max_iterations", "5"]
     cmd += ["--log_root", str(work / "runs_multi"), "--eval_every", "0", "--console", "line"]
+    cmd += ["--train-set", "select_last=0"]
     t0 = time.time()
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=max(10.0, timeout - 5))
     text = proc.stdout + proc.stderr
