@@ -709,6 +709,10 @@ def test_evaluate_ranks_checkpoints_as_each_evaluates_alone(run):
     assert keys == sorted(keys)
     assert "first by this evaluation: " + min(rows, key=lambda k: rows[k][0]) in ranked
 
+    rc, parallel = ev("--checkpoints", "3,1,3", "--jobs", "2")  # two processes: the same table
+    assert rc == 0, parallel
+    assert [ln for ln in parallel.splitlines() if ln.startswith("| ") and "model_" in ln] == table
+
     rc, selected = ev("--checkpoints", "3,1", "--select")
     assert rc == 0, selected
     first = min(rows, key=lambda k: rows[k][0])

@@ -812,6 +812,13 @@ def build_parser() -> argparse.ArgumentParser:
         "(500,750,best), or 'all' (every model_<it>.pt and model_best.pt); ordered by falls, then checks passed",
     )
     p.add_argument(
+        "--jobs",
+        type=int,
+        default=1,
+        help="with --checkpoints: evaluate this many checkpoints at once, each in its own process (one per core "
+        "is a good choice; default 1)",
+    )
+    p.add_argument(
         "--select",
         action="store_true",
         help="with --checkpoints: record the first of the ranking in the run's selected.yaml, the checkpoint play, "
@@ -922,8 +929,8 @@ def rank(args: argparse.Namespace, default_log_root: Path | None) -> int:
     """--checkpoints: every listed checkpoint through the same scenarios (a fresh env each, so
     each result is the one `--checkpoint N` gives), one line each as it goes, then a table
     ordered by falls (fewest first), then checks passed (most first), then iteration."""
-    from legged_casters.tools.export import load_actor
-
+    if args.jobs < 1:
+        raise UsageError(f"--jobs must be at least 1, got {args.jobs}")
     for flag in ("policy", "checkpoint"):
         if getattr(args, flag):
             raise UsageError(f"--checkpoints ranks checkpoints of a run: leave out --{flag}")
@@ -943,28 +950,27 @@ def rank(args: argparse.Namespace, default_log_root: Path | None) -> int:
     cond_name, cond = single_condition(args, sel.env_cfg)
     print(f"[{PROG}] run {sel.run_dir}: {len(paths)} checkpoints, {len(scenarios)} scenarios, {cond_name}")
     rows = []
-    for i, path in enumerate(paths, 1):
-        t0 = time.time()
-        ckpt = common.load_checkpoint(path)
-        env = sel.spec.env_class(eval_env_cfg(sel.env_cfg, scenarios, condition=cond))
-        try:
-            policy = checkpoint_policy(load_actor(env, sel.train_cfg, ckpt, path), bool(args.stochastic))
-            results = run_policy(env, policy, scenarios, args.symmetrise, args.seed)
-        finally:
-            env.close()
-        checks = verdict(results, sel.task)
-        falls = sum(r.falls for r in results)
-        failed = [f"{_check_label(c)} {v}" for c, ok, v in checks if not ok]
-        row = {
-            "file": path.name, "iteration": _iterations_done(path, ckpt), "passed": sum(ok for _, ok, _ in checks),
-            "checks": len(checks), "falls": falls, "failed": failed,
-        }  # fmt: skip
+    jobs = min(max(1, args.jobs), len(paths))
+    work = [(sel, path, scenarios, cond, bool(args.stochastic), args.symmetrise, args.seed) for path in paths]
+    if jobs == 1:
+        done = map(_rank_row, work)
+    else:  # each checkpoint in its own process (spawned: no torch or rollout threads forked)
+        import concurrent.futures
+        import multiprocessing
+
+        pool = concurrent.futures.ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"))
+        futures = [pool.submit(_rank_row, item) for item in work]
+        done = (f.result() for f in concurrent.futures.as_completed(futures))
+    for i, (row, seconds) in enumerate(done, 1):
         rows.append(row)
         print(
             f"[{PROG}] {i}/{len(paths)} {row['file']} (iteration {row['iteration']}): {row['passed']}/{row['checks']} "
-            f"checks, {falls} falls ({time.time() - t0:.0f} s)",
+            f"checks, {row['falls']} falls ({seconds:.0f} s)",
             flush=True,
         )
+    if jobs > 1:
+        pool.shutdown()
+        rows.sort(key=lambda r: [p.name for p in paths].index(r["file"]))  # the order given, as with one job
     print()
     print(format_ranking(rows))
     top = min(rows, key=_rank_key)
@@ -973,6 +979,29 @@ def rank(args: argparse.Namespace, default_log_root: Path | None) -> int:
     if args.select:
         write_selection(sel.run_dir, top, rows, args.scenarios, cond_name)
     return common.EXIT_OK
+
+
+def _rank_row(item) -> tuple[dict, float]:
+    """One checkpoint of a --checkpoints ranking in a fresh env: (its row, seconds)."""
+    from legged_casters.tools.export import load_actor
+
+    sel, path, scenarios, cond, stochastic, symmetrise, seed = item
+    t0 = time.time()
+    torch.set_num_threads(1)
+    ckpt = common.load_checkpoint(path)
+    env = sel.spec.env_class(eval_env_cfg(sel.env_cfg, scenarios, condition=cond))
+    try:
+        policy = checkpoint_policy(load_actor(env, sel.train_cfg, ckpt, path), stochastic)
+        results = run_policy(env, policy, scenarios, symmetrise, seed)
+    finally:
+        env.close()
+    checks = verdict(results, sel.task)
+    row = {
+        "file": path.name, "iteration": _iterations_done(path, ckpt), "passed": sum(ok for _, ok, _ in checks),
+        "checks": len(checks), "falls": sum(r.falls for r in results),
+        "failed": [f"{_check_label(c)} {v}" for c, ok, v in checks if not ok],
+    }  # fmt: skip
+    return row, time.time() - t0
 
 
 def write_selection(run_dir: Path, top: dict, rows: list[dict], scenarios: str, condition: str) -> None:

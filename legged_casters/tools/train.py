@@ -408,7 +408,10 @@ def select_after_training(task: str, run_dir: Path, train_cfg) -> int:
 
     saved = [it for it, _ in common.checkpoints(run_dir)][-train_cfg.select_last :]
     print(f"[{PROG}] selecting the checkpoint by the full evaluation: iterations {', '.join(map(str, saved))}")
+    from legged_casters.sim.base import usable_cpus
+
     argv = ["--task", task, "--load_run", str(run_dir), "--checkpoints", ",".join(map(str, saved)), "--select"]
+    argv += ["--jobs", str(max(1, min(len(saved), usable_cpus())))]  # one checkpoint per core
     return evaluate.main(argv)
 
 
