@@ -138,6 +138,8 @@ def test_path_follower_says_stalled_only_without_progress():
     assert f.stalled() and not f.done
 
 
-def test_trained_on_reads_the_shipped_policys_own_configs():
-    """The shipped caster_omni was trained on ground tilted up to several degrees (terrain.slope_deg)."""
+def test_trained_on_reads_the_task_a_shipped_policy_names():
+    """A shipped folder whose policy.yaml names another task than the folder (caster_omni_backlaw:
+    caster_omni_sym) is described from its own configs, not refused as a task mismatch."""
     assert reproduce.trained_on("caster_omni") == "trained on slopes"
+    assert reproduce.trained_on("caster_omni_backlaw") == "trained on flat ground"

@@ -367,8 +367,9 @@ def test_symmetry_exact_actor_is_mirror_equivariant_trained_and_exported(tmp_pat
 
 
 def test_shipped_symmetric_policy_mirrors_its_action_and_says_so():
-    """resources/policies/caster_omni (symmetry.mode=exact): the shipped TorchScript and ONNX files give the
-    mirrored observation exactly the mirrored action, and policy.yaml says the network is symmetric."""
+    """resources/policies/caster_omni_sym, caster_omni_backlaw and caster_omni_smooth (symmetry.mode=exact): the
+    shipped TorchScript and ONNX files give the mirrored observation exactly the mirrored action, and policy.yaml
+    says the network is symmetric; caster_omni_track (trained without it) does neither."""
     import onnxruntime as ort
     import yaml
 
@@ -376,7 +377,12 @@ def test_shipped_symmetric_policy_mirrors_its_action_and_says_so():
     from legged_casters.tools import evaluate as ev
 
     torch.manual_seed(0)
-    cases = (("caster_omni", True),)
+    cases = (
+        ("caster_omni_sym", True),
+        ("caster_omni_backlaw", True),
+        ("caster_omni_smooth", True),
+        ("caster_omni_track", False),
+    )
     for name, symmetric in cases:
         folder = common.SHIPPED_POLICIES / name
         meta = yaml.safe_load((folder / "policy.yaml").read_text())
@@ -398,23 +404,19 @@ def test_shipped_symmetric_policy_mirrors_its_action_and_says_so():
         env.close()
 
 
-def test_caster_omni_task_is_the_shipped_policys_recipe():
-    """`python train.py --task caster_omni` (what `./setup.sh train` runs) trains with the configs
-    the shipped caster_omni was trained with (its env.yaml and train.yaml), apart from what a run
-    sets itself (its name, the envs per process, the device); its default per-process physics
-    steps are the recipe's (5 ms and 2 ms)."""
+def test_caster_omni_sym_task_is_the_shipped_policys_recipe():
+    """`python train.py --task caster_omni_sym` trains with the configs the shipped
+    caster_omni_sym was trained with (its env.yaml and train.yaml), apart from what a run
+    sets itself (its name, the envs per process, the device) and the task's own name; its
+    default per-process physics steps are run 104's (the folder README's command)."""
     import yaml
 
     from legged_casters.config import load_yaml, to_dict
     from legged_casters.tools import common
 
-    spec = registry.get_task("caster_omni")
-    folder = common.SHIPPED_POLICIES / "caster_omni"
-    run_set = {"num_envs", "sim.device", "seed", "run_name", "env_per_process"}
-    # select_last ranks the checkpoints after training, which changes nothing the run trains; the
-    # shipped run was started before the option existed and its selection run by hand
-    # (docs/policies.md has the command)
-    run_set.add("select_last")
+    spec = registry.get_task("caster_omni_sym")
+    folder = common.SHIPPED_POLICIES / "caster_omni_sym"
+    run_set = {"num_envs", "sim.device", "seed", "run_name", "experiment_name", "env_per_process"}
 
     def flat(d, pre=""):
         out = {}
@@ -434,4 +436,4 @@ def test_caster_omni_task_is_the_shipped_policys_recipe():
     shipped_train = yaml.safe_load((folder / "train.yaml").read_text())
     assert spec.train_cfg.seed == shipped_train["seed"]
     assert spec.train_cfg.env_per_process == {"sim.timestep": [0.005, 0.002], "sim.decimation": [4, 10]}
-    assert common.shipped_policy_dir("caster_omni") == folder  # play/evaluate --task caster_omni find it
+    assert common.shipped_policy_dir("caster_omni_sym") == folder  # play/evaluate --task caster_omni_sym find it

@@ -54,7 +54,14 @@ class Result:
 
 DEFAULT_CASTER = "caster_omni"
 """The caster policy of every experiment (the default of play, evaluate and the bridge)."""
-SPEED_POLICIES: tuple[str, ...] = ()
+SPEED_POLICIES = (
+    "caster_omni_speed",
+    "caster_omni_anneal",
+    "caster_omni_clock",
+    "caster_omni_track",
+    "caster_omni_sym",
+    "caster_omni_backlaw",
+)
 """Further shipped caster policies (folders under resources/policies/) that the flat-ground
 experiments (Fig. 6, 9, 10, the slalom and Table II's flat COT) also run, each with rows and
 figures of its own. The loop of Table II's course stays the default's: it was trained on hills."""
