@@ -458,11 +458,7 @@ def caster_omni_stop_cfg() -> CasterOmniCfg:
     ground tilted up to 6 deg in any direction in 60 % of the episodes, the legs' rest
     term only once the trunk is slow (so they may brake or hold on a slope first), and the
     critic given the ground's tilt."""
-    cfg = caster_omni_cfg()
-    cfg.history_length = 50
-    cfg.domain_rand.action_latency_range = (0.0, 0.02)
-    cfg.rewards.scales["tracking_ang_vel"] = 2.0
-    cfg.commands.curriculum_threshold = 0.5
+    cfg = caster_omni_sym_cfg()
     cfg.gait.amplitude_law_backward = [[0.0, 0.0], [0.25, 0.2], [0.5, 0.25], [1.0, 0.35]]
     cfg.commands.standing_fraction = 0.25
     cfg.commands.reverse_fraction = 0.15
@@ -524,16 +520,11 @@ def caster_omni_stop_train_cfg() -> TrainCfg:
     exploration std fixed at 0.2 and lowered to 0.1 over its last 150 iterations (650-800), and
     (with 2 or more processes, `--procs`) process 0 at 5 ms physics, process 1 at the
     robot side's 2 ms; at the end the run selects its checkpoint by the full evaluation."""
-    cfg = caster_omni_train_cfg()
+    cfg = caster_omni_sym_train_cfg()
     cfg.experiment_name = "caster_omni_stop"
     cfg.max_iterations = 800
-    cfg.seed = 2
     cfg.select_last = 3  # the run ranks iterations 700-800 by the full evaluation (about 3 min each) and selects one
-    cfg.policy.learn_noise_std = False
     cfg.policy.noise_std_schedule = ((650, 0.2), (800, 0.1))
-    cfg.estimator.skip_terms = ("commands",)
-    cfg.symmetry.mode = "exact"
-    cfg.env_per_process = {"sim.timestep": [0.005, 0.002], "sim.decimation": [4, 10]}
     return cfg
 
 
