@@ -1,6 +1,6 @@
 """MuJoCo Warp against MuJoCo C on the same starts and PD targets: the measures of the
 backend parity test (tests/test_sim_backends.py), shared with the GPU check
-(legged_casters/tools/gpu_check.py), which runs them with Warp on CUDA."""
+(dev/gpu_loan/gpu_check.py, the lent-GPU check), which runs them with Warp on CUDA."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The GPU check (scripts/gpu.py run): everything the GPU path promises, measured in one run.
+"""The GPU check (dev/gpu_loan/gpu.py run): everything the GPU path promises, measured in one run.
 
 Stages, in order, each with its own time limit (a stage past it is killed and the run
 goes on with the next; one that raises is recorded with its error):
@@ -17,7 +17,7 @@ goes on with the next; one that raises is recorded with its error):
   multi_gpu   train.py under torchrun, one process per GPU (only with more than one GPU)
 
 The orchestrator (`run_check`) uses only the standard library: it starts a worker
-process (`python -m legged_casters.tools.gpu_check worker ...`) that runs the stages
+process (`python dev/gpu_loan/gpu_check.py worker ...`) that runs the stages
 one after the other and writes each one's result as it ends; it watches the worker's
 progress file, kills it when a stage outlives its limit, and starts a new worker for
 the stages left. Results go to <out>/gpu_check.json and a table to <out>/gpu_check.txt
@@ -788,7 +788,7 @@ def run_check(
         launches += 1
         progress = work / "progress.json"
         progress.unlink(missing_ok=True)
-        cmd = [python or sys.executable, "-m", "legged_casters.tools.gpu_check", "worker", "--work", str(work)]
+        cmd = [python or sys.executable, str(Path(__file__).resolve()), "worker", "--work", str(work)]
         cmd += ["--stages", ",".join(pending), "--settings", str(settings_file), "--deadline", repr(deadline)]
         with open(work / "logs" / "worker.log", "ab") as wlog:
             proc = subprocess.Popen(

@@ -483,8 +483,8 @@ def device_calls(manifest: dict, out_flag: str = "--out $OUT") -> list[dict]:
     calls = []
     n = manifest["calls"]
     for c in range(1, n + 1):
-        last = f"PYTHONUNBUFFERED=1 python3 scripts/gpu.py run {out_flag}"
-        cmd = "python3 scripts/gpu.py stash" if c < n else last
+        last = f"PYTHONUNBUFFERED=1 python3 dev/gpu_loan/gpu.py run {out_flag}"
+        cmd = "python3 dev/gpu_loan/gpu.py stash" if c < n else last
         calls.append({"carry": [f"{WHEEL_DIR}/call{c}"], "command": cmd})
     return calls
 

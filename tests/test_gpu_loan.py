@@ -1,4 +1,4 @@
-"""scripts/gpu.py: the GPU check in its CPU mode (every stage, Warp on the CPU device),
+"""dev/gpu_loan/gpu.py: the GPU check in its CPU mode (every stage, Warp on the CPU device),
 the orchestrator's time limits, and the wheel planning (which packages, how they are
 cut into device calls and joined back), all without a GPU or a network."""
 
@@ -16,17 +16,22 @@ from pathlib import Path
 
 import pytest
 
-from legged_casters.tools import gpu_check, gpu_wheels
-from legged_casters.tools.gpu_wheels import MIB, canonical
-
 REPO = Path(__file__).resolve().parents[1]
+GPU_LOAN = REPO / "dev" / "gpu_loan"
+"""The lent-GPU tooling: kept beside the package, not in it."""
+GPU_PY = GPU_LOAN / "gpu.py"
+sys.path.insert(0, str(GPU_LOAN))
+
+import gpu_check  # noqa: E402
+import gpu_wheels  # noqa: E402
+from gpu_wheels import MIB, canonical  # noqa: E402
 
 
 # --- the CPU mode of `run` ---------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def cpu_run(tmp_path_factory):
     out, work = tmp_path_factory.mktemp("out"), tmp_path_factory.mktemp("work")
-    cmd = [sys.executable, str(REPO / "scripts" / "gpu.py"), "run", "--cpu", "--out", str(out), "--work", str(work)]
+    cmd = [sys.executable, str(GPU_PY), "run", "--cpu", "--out", str(out), "--work", str(work)]
     proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=280)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     return json.loads((out / "gpu_check.json").read_text()), out, proc.stdout
@@ -40,7 +45,7 @@ def test_cpu_run_has_every_stage(cpu_run):
         assert stage["status"] == expected, (name, stage.get("error"), stage.get("log_tail", "")[-1500:])
         assert stage["seconds"] is not None
     assert (out / "gpu_check.txt").read_text() in stdout
-    report = [sys.executable, str(REPO / "scripts" / "gpu.py"), "report", str(out / "gpu_check.json")]
+    report = [sys.executable, str(GPU_PY), "report", str(out / "gpu_check.json")]
     assert (
         subprocess.run(report, capture_output=True, text=True, check=True).stdout == (out / "gpu_check.txt").read_text()
     )
@@ -140,10 +145,10 @@ def test_log_parsers_match_the_tools():
 
 
 def test_report_reprints_the_first_gpu_run():
-    """`gpu.py report` on the JSON returned by the first H200 run (docs/gpu_check/)
+    """`gpu.py report` on the JSON returned by the first H200 run (research/gpu_check/)
     prints exactly the table that run returned, so older results stay readable."""
-    results = json.loads((REPO / "docs/gpu_check/2026-12-04_h200.json").read_text())
-    returned = (REPO / "docs/gpu_check/2026-12-04_h200.txt").read_text()
+    results = json.loads((REPO / "research/gpu_check/2026-12-04_h200.json").read_text())
+    returned = (REPO / "research/gpu_check/2026-12-04_h200.txt").read_text()
     assert gpu_check.summary_table(results).strip() == returned.strip()
     # a parity run outside its bounds names how many robots and where, when the JSON says so
     par = results["stages"]["parity"]["result"]["runs"][1]
@@ -269,7 +274,7 @@ def test_device_calls_fit_the_tool():
     calls = gpu_wheels.device_calls(manifest)
     assert [c["carry"] for c in calls] == [[".whl/call1"], [".whl/call2"], [".whl/call3"]]
     assert all(len(c["command"]) <= 2000 and len(c["carry"]) <= 8 for c in calls)
-    assert calls[-1]["command"].endswith("scripts/gpu.py run --out $OUT")
+    assert calls[-1]["command"].endswith("dev/gpu_loan/gpu.py run --out $OUT")
 
 
 def test_read_have_takes_pip_list_and_freeze(tmp_path):
@@ -315,7 +320,7 @@ def _unpack(parts: list[Path], dest: Path) -> None:
 
 
 def test_pack_run_keeps_the_newest_checkpoints_within_the_parts(tmp_path):
-    from legged_casters.tools import gpu_train
+    import gpu_train
 
     run = tmp_path / "logs" / "2026-01-01_00-00-00_x"
     run.mkdir(parents=True)
@@ -344,7 +349,7 @@ def test_pack_run_keeps_the_newest_checkpoints_within_the_parts(tmp_path):
 def test_pack_run_counts_the_tar_headers_and_names_parts_as_the_device_tool_returns_them(tmp_path):
     """Many small files cost a header each (and Python's tar adds one per fractional mtime):
     the parts still number at most max_parts; a run name outside [A-Za-z0-9._-] is made safe."""
-    from legged_casters.tools import gpu_train
+    import gpu_train
 
     run = tmp_path / "2026-01-01_00-00-00_a b+c"
     run.mkdir()
@@ -365,7 +370,7 @@ TINY_TRAIN += ["--train-set", "policy.actor_hidden_dims=[32,32]", "--train-set",
 
 
 def _gpu_train(tmp_path: Path, *args: str, timeout: float = 200) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, str(REPO / "scripts" / "gpu.py"), "train", "--no-install", "--out", str(tmp_path / "out")]
+    cmd = [sys.executable, str(GPU_PY), "train", "--no-install", "--out", str(tmp_path / "out")]
     return subprocess.run([*cmd, *args], cwd=REPO, capture_output=True, text=True, timeout=timeout)
 
 

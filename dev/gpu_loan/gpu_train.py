@@ -1,4 +1,4 @@
-"""`scripts/gpu.py train`: one training on the lent GPU machine inside one device call.
+"""`dev/gpu_loan/gpu.py train`: one training on the lent GPU machine inside one device call.
 
 A device call has a hard time limit and returns at most 8 files of at most 16 MiB each
 (64 MiB in all), so this runs train.py with a deadline and packs its run folder to fit:
@@ -31,8 +31,8 @@ import threading
 import time
 from pathlib import Path
 
-from legged_casters.tools import gpu_check
-from legged_casters.tools.gpu_wheels import MIB
+import gpu_check
+from gpu_wheels import MIB
 
 REPO = gpu_check.REPO
 PART_BYTES = 15 * MIB
