@@ -32,7 +32,7 @@ import numpy as np
 from legged_casters.deploy import protocol as P
 from legged_casters.deploy import robot_side, transport, unitree
 from legged_casters.deploy.sim_robot import SimRobot
-from legged_casters.robot import build
+from legged_casters.robot import go2
 
 LOOPBACK = ("lo", "lo0")
 TRUTH_RATE_HZ = 100.0
@@ -113,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="fake_go2", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    p.add_argument("--robot", choices=tuple(build.MODEL_FILES), default="caster")
+    p.add_argument("--robot", choices=go2.FOOT_KINDS, default="caster")
     p.add_argument("--domain-id", type=int, default=0, help="DDS domain (default: 0, the Go2's)")
     p.add_argument("--network-interface", default="lo", help="loopback only (default: lo)")
     p.add_argument("--state-rate", type=float, default=500.0, help="LowState messages per second (default: 500)")

@@ -53,7 +53,7 @@ import numpy as np
 
 from legged_casters.deploy import drive, robot_side, transport, unitree
 from legged_casters.deploy import protocol as P
-from legged_casters.robot import build
+from legged_casters.robot import go2
 
 LOOPBACK = ("lo", "lo0")
 REMOTE_STOP_WHY = "stop on the Go2 remote"
@@ -271,7 +271,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument(
         "--robot",
-        choices=tuple(build.MODEL_FILES),
+        choices=go2.FOOT_KINDS,
         default="caster",
         help="joint set: caster / point (12 legs), wheel (Go2-W: 12 legs + 4 wheels)",
     )

@@ -197,7 +197,7 @@ class ZenohSimRobot:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--robot", choices=tuple(build.MODEL_FILES), default="caster")
+    p.add_argument("--robot", choices=go2.FOOT_KINDS, default="caster")
     p.add_argument("--state-rate", type=float, default=50.0, help="state messages per second (default: 50)")
     p.add_argument("--watchdog-ms", type=float, default=100.0)
     p.add_argument("--damping-kd", type=float, default=1.0)

@@ -39,7 +39,8 @@ MODEL_FILES = {
     "wheel": MODEL_DIR / "go2_wheel.xml",
 }
 MODEL_NAMES = {"caster": "go2_caster", "point": "go2_point_foot", "wheel": "go2_wheel"}
-FOOT_KINDS = tuple(MODEL_FILES)
+FOOT_KINDS = go2.FOOT_KINDS
+assert tuple(MODEL_FILES) == tuple(MODEL_NAMES) == FOOT_KINDS, "one model file and name per kind of feet"
 
 STAND_KEY = "stand"
 _CONTACT_DATA = 1 | 2  # found + force

@@ -195,6 +195,10 @@ class ActionLayout:
         return sum(self.position_mask)
 
 
+FOOT_KINDS = ("caster", "point", "wheel")
+"""The Go2's feet: passive casters, point feet (the trotting baseline), driving wheels."""
+
+
 def action_layout(feet: str) -> ActionLayout:
     """The action layout of the Go2 with `feet` 'caster', 'point' (12 leg joints) or
     'wheel' (12 leg joints, then 4 wheel joints)."""
