@@ -46,10 +46,12 @@ START = {"frequency": 2.0, "amplitude": 0.2, "tilt": 0.2, "thigh_share": 0.0, "l
 
 def rollout(
     task: str, direction: tuple[float, float], params: list[dict], seconds: float, window: float,
-    initial_speed: float = 0.0,
+    initial_speed: float = 0.0, slope_deg: float = 0.0, trace: list | None = None,
 ):  # fmt: skip
     """Each parameter set on its own robot; returns (speed, power, fell) arrays. With
-    `initial_speed` (m/s) every trunk starts moving that fast along the direction."""
+    `initial_speed` (m/s) every trunk starts moving that fast along the direction; with
+    `slope_deg` the ground rises along the direction (the push goes uphill); a `trace` list
+    gets each control step's trunk velocity along the direction (world frame, (n,) each)."""
     n = len(params)
     env_cfg, _ = registry.task_configs(
         task, {**EVAL_SETTINGS, "num_envs": n, "episode_length_s": seconds + 5.0, "sim.backend": "cpu"}
@@ -60,6 +62,9 @@ def rollout(
         env.set_commands(cmd)
         env.set_mode("four_wheel")
         env.reset()
+        if slope_deg:
+            downhill = math.atan2(-direction[1], -direction[0])
+            env.set_ground_slope(slope_deg, downhill)
         if initial_speed:
             qvel = env.sim.qvel.clone()
             qvel[:, 0:2] = initial_speed * torch.tensor(direction, dtype=qvel.dtype)
@@ -82,13 +87,17 @@ def rollout(
         for k in range(steps):
             offsets = gait._prior(
                 cmd, mask, torch.sin(phase), gait.FOOT_XY, gait._SIDE, gait._FRONT,
-                per_leg["tilt"], amp, per_leg["thigh_share"], g.full_speed, per_leg["lateral_gain"],
-                torch.zeros(n, 3), 0.0, 0.0, 0.0, torch.zeros(n, 2), 0.0, 1.0,
-                torch.zeros(0, 2), torch.zeros(0, 2), per_leg["tilt"], torch.zeros(n), 0.0, 1.0,
+                tilt=per_leg["tilt"], amplitude=amp, thigh_share=per_leg["thigh_share"], full_speed=g.full_speed,
+                lateral_gain=per_leg["lateral_gain"], gravity=torch.zeros(n, 3), uphill_gain=0.0,
+                uphill_deadband=0.0, max_amplitude=0.0, velocity=torch.zeros(n, 2), speed_feedback=0.0,
+                command_share=1.0, law_fwd=torch.zeros(0, 2), law_back=torch.zeros(0, 2), law_adds=False,
+                tilt_backward=per_leg["tilt"], yaw_rate=torch.zeros(n), yaw_feedback=0.0, yaw_command_share=1.0,
             )  # fmt: skip
             _, _, dones, _ = env.step(offsets / env.cfg.control.action_scale)
             phase = torch.remainder(phase + 2 * math.pi * freq * env.dt, 2 * math.pi)
             fell |= dones.bool()
+            if trace is not None:
+                trace.append(env.base_lin_vel_world[:, :2] @ torch.tensor(direction))
             if k == first:
                 start_xy = env.base_pos[:, :2].clone()
             if k > first:
