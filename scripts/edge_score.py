@@ -1,6 +1,6 @@
 """What an exported policy scores under the "edge" command curriculum, in training conditions.
 
-    python scripts/edge_score.py --policy resources/policies/caster_omni_speed --std 0.2   # ~1 min
+    python scripts/edge_score.py --policy resources/policies/caster_omni --std 0.2   # ~1 min
 
 Runs the policy's TorchScript actor (its mean action plus Gaussian noise of `--std`, in
 action units, as a stochastic policy acts in training) on `--num-envs` robots of its task

@@ -1,6 +1,6 @@
 """How well can the trunk velocity be estimated from what the robot measures? An offline study.
 
-    python scripts/estimator_ceiling.py                      # caster_omni_speed, ~5 min on 2 cores
+    python scripts/estimator_ceiling.py                      # the shipped caster_omni, ~5 min on 2 cores
     python scripts/estimator_ceiling.py --policy resources/policies/caster_omni --envs 128 --seconds 20
 
 The speed-control issue asks for a velocity estimate within 0.1 m/s RMS. The estimator
@@ -157,7 +157,7 @@ def fit_gru(x, vel, done, valid, n_train: int, epochs: int, chunk: int = 50) -> 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--policy", type=Path, default=Path("resources/policies/caster_omni_speed"))
+    ap.add_argument("--policy", type=Path, default=Path("resources/policies/caster_omni"))
     ap.add_argument("--envs", type=int, default=256)
     ap.add_argument("--seconds", type=float, default=30.0, help="rollout length (s)")
     ap.add_argument("--action-noise", type=float, default=0.15, help="std of the Gaussian noise on the actions")

@@ -328,9 +328,9 @@ def test_play_takes_an_export_folder_like_evaluate_and_the_bridge(exported, tmp_
 
 
 def test_a_task_without_runs_plays_its_shipped_policy_under_the_folders_task(tmp_path):
-    """play.py --task caster_omni_sym with no run under the log root plays the shipped
-    caster_omni_sym folder, whose policy.yaml names the task its run had (caster_omni)."""
-    argv = ["--task", "caster_omni_sym", "--log_root", str(tmp_path), "--no_video", "--headless"]
+    """play.py with no run under the log root plays the shipped caster_omni folder, under the
+    task its policy.yaml names (caster_omni_sym, whose configs it was trained with)."""
+    argv = ["--log_root", str(tmp_path), "--no_video", "--headless"]
     argv += ["--duration", "0.2", "--num_envs", "1", "--out", str(tmp_path / "out")]
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):
@@ -605,17 +605,19 @@ def test_play_of_a_runs_export_writes_next_to_the_run_not_into_the_export(run, t
 
 
 def test_each_shipped_policy_played_gets_its_own_output_folder(tmp_path):
-    """caster_omni and caster_omni_sym both name caster_omni as their task: playing one must
-    not overwrite the other's plots, and nothing is written into resources/."""
+    """The shipped caster_omni and a copy of it under another name both name caster_omni_sym
+    as their task: playing one must not overwrite the other's plots, and nothing is written
+    into resources/."""
+    copy = tmp_path / "mine"
+    shutil.copytree(common.SHIPPED_POLICIES / "caster_omni", copy)
     outs = []
-    for name in ("caster_omni", "caster_omni_sym"):
-        folder = common.SHIPPED_POLICIES / name
+    for folder in (common.SHIPPED_POLICIES / "caster_omni", copy):
         args = play.build_parser().parse_args(["--policy", str(folder), "--log_root", str(tmp_path)])
         with contextlib.redirect_stdout(io.StringIO()):
             source = play._resolve_source(args, None)
-        assert source.task == "caster_omni"
+        assert source.task == "caster_omni_sym"
         outs.append(source.out_dir)
-    assert outs == [tmp_path / "caster_omni" / "play_caster_omni", tmp_path / "caster_omni" / "play_caster_omni_sym"]
+    assert outs == [tmp_path / "caster_omni_sym" / "play_caster_omni", tmp_path / "caster_omni_sym" / "play_mine"]
 
 
 def _train_cmd(root: Path, *extra: str) -> list[str]:

@@ -42,9 +42,9 @@ def test_dead_zone_and_scaling_stay_inside_the_ranges():
 
 
 def test_command_ranges_come_from_the_export_and_the_task():
-    """The shipped caster_omni_smooth export: its env.yaml's ranges (with the curriculum's
+    """The shipped caster_omni export: its env.yaml's ranges (with the curriculum's
     widened vx), its three propulsion modes; a task's defaults from the registry."""
-    ranges, modes = drive.policy_limits(REPO / "resources" / "policies" / "caster_omni_smooth")
+    ranges, modes = drive.policy_limits(REPO / "resources" / "policies" / "caster_omni")
     assert ranges.vy == (-0.5, 0.5) and ranges.wz == (-1.0, 1.0) and ranges.vx == (-4.0, 4.0)
     assert modes == tuple(P.PropulsionMode)
     assert drive.task_command_ranges("go2_wheel_flat").vy == (0.0, 0.0)

@@ -24,24 +24,6 @@ def test_quick_reproduction_writes_every_experiment(tmp_path, capsys):
     rows = [line for line in page.splitlines() if line.startswith("| Fig. 6 error angles")]
     seconds = float(rows[0].split("|")[3].split()[0])
     assert 0.0 < seconds < 5.0  # the posture recovers after the reversal (measured, not typed)
-    # The flat-ground experiments again with the other shipped caster policy, rows and figures of its own;
-    # the loop (course) only with the default, which was trained on hills.
-    for policy in reproduce.SPEED_POLICIES:
-        for experiment in (
-            "Fig. 6 error angles",
-            "Fig. 9 best 2 s",
-            "Fig. 10 rear_wheel",
-            "Fig. 1 / Fig. 8 slalom, poles",
-        ):
-            (row,) = [
-                line for line in page.splitlines() if line.startswith(f"| {experiment}") and f"({policy})" in line
-            ]
-            assert f"| {policy}, " in row or f"| {policy} at " in row  # measured with that policy
-        assert f"| Table II passive casters ({policy}) | COT 0.0705 | COT 0." in page
-        assert f"Table II course, passive casters ({policy})" not in page
-        for stem in ("fig6_posture", "fig9_top_speed", "fig10_modes", "fig8_slalom"):
-            assert (tmp_path / "results" / f"{stem}_{policy}.png").stat().st_size > 5000
-            assert f"(results/{stem}_{policy}.png)" in page
     for name in (
         "fig3_force.png",
         "fig6_posture.png",
@@ -139,7 +121,6 @@ def test_path_follower_says_stalled_only_without_progress():
 
 
 def test_trained_on_reads_the_task_a_shipped_policy_names():
-    """A shipped folder whose policy.yaml names another task than the folder (caster_omni_backlaw:
+    """A shipped folder whose policy.yaml names another task than the folder (caster_omni:
     caster_omni_sym) is described from its own configs, not refused as a task mismatch."""
-    assert reproduce.trained_on("caster_omni") == "trained on slopes"
-    assert reproduce.trained_on("caster_omni_backlaw") == "trained on flat ground"
+    assert reproduce.trained_on("caster_omni") == "trained on flat ground"

@@ -367,9 +367,9 @@ def test_symmetry_exact_actor_is_mirror_equivariant_trained_and_exported(tmp_pat
 
 
 def test_shipped_symmetric_policy_mirrors_its_action_and_says_so():
-    """resources/policies/caster_omni_sym, caster_omni_backlaw and caster_omni_smooth (symmetry.mode=exact): the
-    shipped TorchScript and ONNX files give the mirrored observation exactly the mirrored action, and policy.yaml
-    says the network is symmetric; caster_omni_track (trained without it) does neither."""
+    """resources/policies/caster_omni (symmetry.mode=exact): the shipped TorchScript and ONNX files
+    give the mirrored observation exactly the mirrored action, and policy.yaml says the network is
+    symmetric."""
     import onnxruntime as ort
     import yaml
 
@@ -377,12 +377,7 @@ def test_shipped_symmetric_policy_mirrors_its_action_and_says_so():
     from legged_casters.tools import evaluate as ev
 
     torch.manual_seed(0)
-    cases = (
-        ("caster_omni_sym", True),
-        ("caster_omni_backlaw", True),
-        ("caster_omni_smooth", True),
-        ("caster_omni_track", False),
-    )
+    cases = (("caster_omni", True),)
     for name, symmetric in cases:
         folder = common.SHIPPED_POLICIES / name
         meta = yaml.safe_load((folder / "policy.yaml").read_text())
@@ -402,38 +397,3 @@ def test_shipped_symmetric_policy_mirrors_its_action_and_says_so():
             (b,) = session.run(None, {"obs": mirrored["policy"].numpy()})
             np.testing.assert_allclose(b, mirror(torch.from_numpy(a), index, sign).numpy(), atol=1e-5)
         env.close()
-
-
-def test_caster_omni_sym_task_is_the_shipped_policys_recipe():
-    """`python train.py --task caster_omni_sym` trains with the configs the shipped
-    caster_omni_sym was trained with (its env.yaml and train.yaml), apart from what a run
-    sets itself (its name, the envs per process, the device) and the task's own name; its
-    default per-process physics steps are run 104's (the folder README's command)."""
-    import yaml
-
-    from legged_casters.config import load_yaml, to_dict
-    from legged_casters.tools import common
-
-    spec = registry.get_task("caster_omni_sym")
-    folder = common.SHIPPED_POLICIES / "caster_omni_sym"
-    run_set = {"num_envs", "sim.device", "seed", "run_name", "experiment_name", "env_per_process"}
-
-    def flat(d, pre=""):
-        out = {}
-        for k, v in d.items():
-            if isinstance(v, dict) and k not in ("scales", "env_per_process"):
-                out.update(flat(v, f"{pre}{k}."))
-            else:
-                out[pre + k] = v
-        return out
-
-    for name, cfg in (("env.yaml", spec.env_cfg), ("train.yaml", spec.train_cfg)):
-        ours = flat(yaml.safe_load(yaml.safe_dump(to_dict(cfg))))  # tuples as lists, as the file has them
-        # read as a run's file is read (fields added since take their defaults, which are "off")
-        shipped = flat(yaml.safe_load(yaml.safe_dump(to_dict(load_yaml(type(cfg), folder / name)))))
-        differ = {k for k in set(ours) | set(shipped) if ours.get(k) != shipped.get(k)} - run_set
-        assert not differ, {k: (ours.get(k), shipped.get(k)) for k in sorted(differ)}
-    shipped_train = yaml.safe_load((folder / "train.yaml").read_text())
-    assert spec.train_cfg.seed == shipped_train["seed"]
-    assert spec.train_cfg.env_per_process == {"sim.timestep": [0.005, 0.002], "sim.decimation": [4, 10]}
-    assert common.shipped_policy_dir("caster_omni_sym") == folder  # play/evaluate --task caster_omni_sym find it

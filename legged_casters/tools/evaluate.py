@@ -1221,7 +1221,7 @@ def evaluate(args: argparse.Namespace, default_log_root: Path | None) -> int:
                     "--stochastic needs a training checkpoint; no run was found (train one first)"
                 ) from None
             print(f"[{PROG}] no run found: evaluating the shipped policy {shipped}")
-            # its policy.yaml names its task (caster_omni_sym's folder: caster_omni, whose run it came from)
+            # under the task its policy.yaml names (the shipped caster_omni: caster_omni_sym)
             task, spec, env_cfg, policy, label, dim = load_exported(shipped, None)
             sel = None
         if sel is not None:

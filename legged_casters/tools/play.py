@@ -111,7 +111,7 @@ def _resolve_source(args: argparse.Namespace, default_log_root: Path | None) -> 
             if shipped is None:
                 raise
             print(f"[play.py] no training run found: playing the shipped policy {shipped / 'policy.pt'}")
-            # its policy.yaml names its task (caster_omni_sym's folder: caster_omni, whose run it came from)
+            # under the task its policy.yaml names (the shipped caster_omni: caster_omni_sym)
             args.policy, args.task = str(shipped / "policy.pt"), None
             return _resolve_source(args, default_log_root)
         out = Path(args.out) if args.out else sel.run_dir / "play"

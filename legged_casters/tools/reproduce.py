@@ -54,18 +54,6 @@ class Result:
 
 DEFAULT_CASTER = "caster_omni"
 """The caster policy of every experiment (the default of play, evaluate and the bridge)."""
-SPEED_POLICIES = (
-    "caster_omni_speed",
-    "caster_omni_anneal",
-    "caster_omni_clock",
-    "caster_omni_track",
-    "caster_omni_sym",
-    "caster_omni_backlaw",
-)
-"""Further shipped caster policies (folders under resources/policies/) that the flat-ground
-experiments (Fig. 6, 9, 10, the slalom and Table II's flat COT) also run, each with rows and
-figures of its own. The loop of Table II's course stays the default's: it was trained on hills."""
-PER_POLICY = ("fig6", "fig9", "fig10", "slalom")
 
 
 def _label(text: str, policy: str) -> str:
@@ -381,10 +369,8 @@ def fig9(out: Path, quick: bool, policy: str = DEFAULT_CASTER) -> Result:
     notes = [f"falls: {'yes' if tr.fell else 'none'} during the ramp."]
     if policy == DEFAULT_CASTER:
         notes.append(
-            "Where ours differs: the shipped caster policy was never asked for more than 1 m/s in training (its "
-            "command curriculum, which may widen vx to 4 m/s, never did: linear tracking stayed below the 80 % "
-            "threshold), and it skates at about 0.9 m/s whatever it is told (research/policies.md). The "
-            "policy, not the simulator, is the gap to the paper's 4.1 m/s: the prior alone, its parameters "
+            "Where ours differs: the policy, not the simulator, is the gap to the paper's 4.1 m/s: the shipped "
+            "policy's backward speed saturates under larger commands, while the prior alone, its parameters "
             'searched open loop, skates 3.5 m/s backwards (docs/robot.md, "The robot\'s top speed, open loop").'
         )
     return Result(
@@ -510,14 +496,10 @@ def table2(out: Path, quick: bool) -> Result:
     rows = [cot_row(task, f"Table II {robot}", paper) for _, task, robot, paper in ROBOTS]
     rows += against_trot(DEFAULT_CASTER, "same run, same measure")
     caster_paper = {task: paper for _, task, _, paper in ROBOTS}[DEFAULT_CASTER]
-    for policy in SPEED_POLICIES:
-        if common.shipped_policy_dir(policy) is not None:
-            rows.append(cot_row(policy, _label("Table II passive casters", policy), caster_paper))
-            rows += against_trot(policy, "same measure, the trot of the row above")
     caster = ""
     if DEFAULT_CASTER in measured:
         times = measured[DEFAULT_CASTER]["cot"] / caster_paper
-        caster = f"our skating policy spends {times:.1f} times the paper's caster COT with a yaw drift and a 2 Hz sway "
+        caster = f"our skating policy spends {times:.1f} times the paper's caster COT with a 2 Hz sway "
     return Result(
         "table2",
         "Table II: cost of transport (flat ground)",
@@ -853,10 +835,7 @@ def write_page(results: list[Result], out: Path, figures: Path, seconds: float, 
         "policies in `resources/policies/`; do not edit by hand. Evaluation setting of `scripts/evaluate.py`: no "
         "observation noise, no randomisation, no pushes, standing starts, one robot. Ours is a simulated Go2 "
         "(MuJoCo, our caster of 50 mm wheels); the paper's numbers are from the real robot. The caster rows are "
-        f"the default policy's (`{DEFAULT_CASTER}`); rows and figures marked "
-        + ", ".join(f"({p})" for p in SPEED_POLICIES)
-        + " repeat the flat-ground experiments with that shipped policy (docs/policies.md), which "
-        "has never seen a hill and so is not run around the loop.",
+        f"the shipped caster policy's (`{DEFAULT_CASTER}`, docs/policies.md).",
         "",
         "| experiment | paper | ours | how measured |",
         "|---|---|---|---|",
@@ -893,15 +872,9 @@ def main(argv: list[str] | None = None) -> int:
         torch.set_num_threads(1)
         results = []
         for name in names:
-            policies = [DEFAULT_CASTER] if name in PER_POLICY else [None]
-            if name in PER_POLICY:
-                policies += [p for p in SPEED_POLICIES if common.shipped_policy_dir(p) is not None]
-            for policy in policies:
-                t = time.time()
-                run = EXPERIMENTS[name]
-                results.append(run(figures, args.quick) if policy is None else run(figures, args.quick, policy))
-                which = "" if policy in (None, DEFAULT_CASTER) else f" ({policy})"
-                print(f"[{PROG}] {name}{which}: {time.time() - t:.0f} s", flush=True)
+            t = time.time()
+            results.append(EXPERIMENTS[name](figures, args.quick))
+            print(f"[{PROG}] {name}: {time.time() - t:.0f} s", flush=True)
         page = write_page(results, out, figures, time.time() - t0, args.quick)
         print(f"[{PROG}] wrote {page}")
         return common.EXIT_OK
