@@ -18,7 +18,7 @@ class PolicyCfg:
     init_noise_std: float = field(default=1.0, metadata={"min": 0.0})
     learn_noise_std: bool = True
     """Whether PPO may change the exploration std (False: it stays init_noise_std). On casters
-    the noise itself propels the robot, so PPO raises a learnt std (research/log.md, runs 40-42)."""
+    the noise itself propels the robot, so PPO raises a learnt std (research/log.md, "What the curves mean")."""
     noise_std_schedule: tuple[tuple[float, float], ...] = ()
     """(iteration, std) points: before each iteration the exploration std is set to their
     linear interpolation at the number of iterations done (held before the first point and

@@ -428,7 +428,7 @@ def caster_omni_cfg() -> CasterOmniCfg:
     cfg.sim.timestep = 0.005
     cfg.sim.decimation = 4
     # The prior pushes for the speed error of the actor's own velocity estimate (research/log.md,
-    # "Speed feedback in the prior"; run 22): without it, it pushes as hard for 0.5 m/s as for 2.
+    # "Speed feedback in the prior"): without it, it pushes as hard for 0.5 m/s as for 2.
     cfg.gait = GaitPriorCfg(
         enabled=True, frequency=2.0, amplitude=0.2, tilt=0.2, thigh_share=0.0, full_speed=0.25,
         speed_feedback=1.0, command_share=0.3,
@@ -469,10 +469,10 @@ def caster_omni_stop_cfg() -> CasterOmniCfg:
 
 
 def caster_omni_sym_cfg() -> CasterOmniCfg:
-    """The env of `caster_omni_sym`, the recipe of runs 103 and 104 (research/log.md,
-    "Symmetric by construction"): caster_omni with 1 s of history, actions applied 0-20 ms
-    late, the yaw-rate reward doubled and the vx range widening at a score of 0.5 (a constant
-    error of 0.42 m/s) instead of 0.6. Its train config adds the exact mirror symmetry, the
+    """The env of `caster_omni_sym` (research/log.md, "Left-right mirror symmetry"):
+    caster_omni with 1 s of history, actions applied 0-20 ms late, the yaw-rate reward
+    doubled and the vx range widening at a score of 0.5 (a constant error of 0.42 m/s)
+    instead of 0.6. Its train config adds the exact mirror symmetry, the
     fixed and then lowered exploration noise, and the 2 ms physics step in every second
     process."""
     cfg = caster_omni_cfg()
@@ -532,7 +532,8 @@ def caster_omni_sym_train_cfg() -> TrainCfg:
     """caster_omni's training with the actor and estimator exactly left-right symmetric, the
     estimator not reading the command, the exploration std fixed at 0.2 and lowered to 0.1
     over iterations 750-900, and (with 2 or more processes, `--procs`) process 0 at 5 ms
-    physics, process 1 at 2 ms; seed 2 as run 104, the shipped `caster_omni_sym`."""
+    physics, process 1 at 2 ms; seed 2. The shipped caster_omni policy's runs started from it
+    with seed 3 (resources/policies/caster_omni/README.md)."""
     cfg = caster_omni_train_cfg()
     cfg.experiment_name = "caster_omni_sym"
     cfg.seed = 2
