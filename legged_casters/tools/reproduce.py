@@ -702,7 +702,7 @@ def campus(out: Path, quick: bool) -> Result:
         "terrain.width": 4 * radius + 4.0,
     }
     length = float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum())
-    rows, traces, cots = [], {}, {}
+    rows, traces, cots, speeds = [], {}, {}, {}
     for flag, task, robot, paper in ROBOTS:
         if common.shipped_policy_dir(task) is None:
             continue
@@ -730,6 +730,7 @@ def campus(out: Path, quick: bool) -> Result:
             d = step[sel].sum()
             cot = tr.power[sel].sum() * tr.dt / (weight * d) if d > 0.5 else math.nan
             parts.append(f"{kind} {cot:.3f}")
+            speeds.setdefault(flag, {})[kind] = d / (sel.sum() * tr.dt) if sel.any() else math.nan
         total = step.sum()  # what the trunk travelled, detours included
         done = length if follower.done else follower.progress  # metres of the loop completed
         # Overall COT per metre of the loop completed, so that a robot's detours (the casters
@@ -800,9 +801,16 @@ def campus(out: Path, quick: bool) -> Result:
             "The overall COT divides the work by the metres of loop completed; the segment COTs by the metres the "
             "trunk travelled in them (averaged over 1 s, so that the 2 Hz sway is not distance). A run ends when "
             f"the robot finishes, falls, or makes under 1 m of progress in {STALL_S:.0f} s.",
-            "The caster policy climbs the 3 deg ramps at about 0.3 m/s (a 1.0 m/s command) and cannot brake "
-            "downhill: it rolls down at up to 3 m/s and runs wide at the bottom, hence its detours.",
-        ],
+        ]
+        + (
+            [
+                f"The caster policy, under the same 1.0 m/s command, went {speeds['caster']['flat']:.2f} m/s on the "
+                f"flat, {speeds['caster']['uphill']:.2f} m/s up the {SLOPE_DEG:.0f} deg ramps and "
+                f"{speeds['caster']['downhill']:.2f} m/s down them (trunk speed over each kind of stretch)."
+            ]
+            if "caster" in speeds
+            else []
+        ),
     )
 
 
