@@ -56,16 +56,6 @@ DEFAULT_CASTER = "caster_omni"
 """The caster policy of every experiment (the default of play, evaluate and the bridge)."""
 
 
-def _label(text: str, policy: str) -> str:
-    """A row's or section's name, with the policy named when it is not the default."""
-    return text if policy == DEFAULT_CASTER else f"{text} ({policy})"
-
-
-def _figure(stem: str, policy: str) -> str:
-    """A figure's file name; the default caster policy's keeps the name the page always had."""
-    return f"{stem}.png" if policy == DEFAULT_CASTER else f"{stem}_{policy}.png"
-
-
 # --- running a shipped policy -----------------------------------------------------------------
 @dataclass
 class Trace:
@@ -247,10 +237,10 @@ def fig3(out: Path, quick: bool) -> Result:
     )
 
 
-def fig6(out: Path, quick: bool, policy: str = DEFAULT_CASTER) -> Result:
+def fig6(out: Path, quick: bool) -> Result:
     """Posture adjustment: stand, vx -0.6 m/s, then +0.6 m/s."""
     t1, t2, end = 2.0, 6.0, 10.0
-    tr = run_policy(policy, end, lambda t, env: (0.0 if t < t1 else (-0.6 if t < t2 else 0.6), 0.0, 0.0))
+    tr = run_policy(DEFAULT_CASTER, end, lambda t, env: (0.0 if t < t1 else (-0.6 if t < t2 else 0.6), 0.0, 0.0))
     ex = tr.extra
     plt = _plt()
     fig, axes = plt.subplots(4, 1, figsize=(7.5, 8.0), sharex=True)
@@ -274,9 +264,9 @@ def fig6(out: Path, quick: bool, policy: str = DEFAULT_CASTER) -> Result:
     for ax in axes:
         ax.axvline(t2, color="grey", lw=0.8, ls=":")
         ax.grid(alpha=0.3)
-    name = _save(fig, out, _figure("fig6_posture", policy))
+    name = _save(fig, out, "fig6_posture.png")
     figures = [(name, "Fig. 6: command and speed, cos(phi), theta_diffz, theta_diffphi per caster (step at 6 s)")]
-    strip = _frame_strip(tr, [t2 - 0.2 + 0.2 * k for k in range(8)], t2, out, _figure("fig7_strip", policy))
+    strip = _frame_strip(tr, [t2 - 0.2 + 0.2 * k for k in range(8)], t2, out, "fig7_strip.png")
     if strip:
         figures.append((strip, "Fig. 7: the robot every 0.2 s, from 0.2 s before the reversal (time after it)"))
     after = tr.t > t2
@@ -289,21 +279,21 @@ def fig6(out: Path, quick: bool, policy: str = DEFAULT_CASTER) -> Result:
         "Where ours differs: the legs re-tilt the swivel axes at once after the step (theta_diffz falls within "
         "a few steps), but the casters need about a second to swing round (theta_diffphi) while the trunk "
         "decelerates; the paper's robot did both in about 0.5 s."
-    ] if policy == DEFAULT_CASTER else []  # fmt: skip
+    ]
     no_gl = "not rendered: no offscreen OpenGL (EGL or OSMesa) here."
     notes.append("Fig. 7: " + ("rendered above." if strip else no_gl))
     return Result(
         "fig6",
-        _label("Fig. 6 / Fig. 7: posture adjustment at a reversal", policy),
+        "Fig. 6 / Fig. 7: posture adjustment at a reversal",
         [
             Row(
-                _label("Fig. 6 error angles back below 90 deg after -0.6 -> +0.6 m/s", policy),
+                "Fig. 6 error angles back below 90 deg after -0.6 -> +0.6 m/s",
                 "about 0.5 s",
                 f"{recover:.2f} s",
-                f"{policy}, time after the step until every caster's theta_diffz and theta_diffphi < 90 deg",
+                f"{DEFAULT_CASTER}, time after the step until every caster's theta_diffz and theta_diffphi < 90 deg",
             ),  # fmt: skip
             Row(
-                _label("Fig. 6 forward motion after the step", policy),
+                "Fig. 6 forward motion after the step",
                 "-",
                 f"{sign:.2f} s",
                 "time after the step until vx > 0.05 m/s",
@@ -340,10 +330,10 @@ def _frame_strip(tr: Trace, times: list[float], zero: float, out: Path, file: st
     return _save(fig, out, file)
 
 
-def fig9(out: Path, quick: bool, policy: str = DEFAULT_CASTER) -> Result:
+def fig9(out: Path, quick: bool) -> Result:
     """Top speed backwards: a command ramping to -4 m/s."""
     ramp, end = 8.0, 12.0
-    tr = run_policy(policy, end, lambda t, env: (-4.0 * min(t / ramp, 1.0), 0.0, 0.0))
+    tr = run_policy(DEFAULT_CASTER, end, lambda t, env: (-4.0 * min(t / ramp, 1.0), 0.0, 0.0))
     window = int(round(2.0 / tr.dt))
     best, best_k = 0.0, None
     for k in range(len(tr.t) - window):
@@ -365,32 +355,32 @@ def fig9(out: Path, quick: bool, policy: str = DEFAULT_CASTER) -> Result:
     ax.set(xlabel="time (s)", ylabel="vx (m/s)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-    name = _save(fig, out, _figure("fig9_top_speed", policy))
-    notes = [f"falls: {'yes' if tr.fell else 'none'} during the ramp."]
-    if policy == DEFAULT_CASTER:
-        notes.append(
-            "Where ours differs: the policy, not the simulator, is the gap to the paper's 4.1 m/s: the shipped "
-            "policy's backward speed saturates under larger commands, while the prior alone, its parameters "
-            'searched open loop, skates 3.5 m/s backwards (docs/robot.md, "The robot\'s top speed, open loop").'
-        )
+    name = _save(fig, out, "fig9_top_speed.png")
+    notes = [
+        f"falls: {'yes' if tr.fell else 'none'} during the ramp.",
+        "Where ours differs: the policy, not the simulator, is the gap to the paper's 4.1 m/s: the shipped "
+        "policy's backward speed saturates under larger commands, while the prior alone, its parameters "
+        'searched open loop, skates 3.5 m/s backwards (docs/robot.md, "The robot\'s top speed, open loop").',
+    ]
     return Result(
         "fig9",
-        _label("Fig. 9: top speed backwards", policy),
+        "Fig. 9: top speed backwards",
         [
             Row(
-                _label("Fig. 9 best 2 s backward speed", policy),
+                "Fig. 9 best 2 s backward speed",
                 "4.1 m/s (8.4 m in 2.05 s)",
                 f"{-best:.2f} m/s",
-                f"{policy}, command ramping 0 -> -4 m/s over 8 s, best 2 s of world-x displacement while upright",
+                f"{DEFAULT_CASTER}, command ramping 0 -> -4 m/s over 8 s, "
+                "best 2 s of world-x displacement while upright",
             ),  # fmt: skip
             Row(
-                _label("Fig. 9 COT at that speed", policy),
+                "Fig. 9 COT at that speed",
                 "-",
                 f"{cot:.3f}",
                 "positive joint work / (m g distance) over those 2 s",
             ),  # fmt: skip
         ],
-        [(name, _label("Fig. 9: backward ramp, commanded and measured speed", policy))],
+        [(name, "Fig. 9: backward ramp, commanded and measured speed")],
         notes,
     )
 
@@ -398,11 +388,11 @@ def fig9(out: Path, quick: bool, policy: str = DEFAULT_CASTER) -> Result:
 MODE_SEQUENCE = ("four_wheel", "front_wheel", "rear_wheel")
 
 
-def fig10(out: Path, quick: bool, policy: str = DEFAULT_CASTER) -> Result:
+def fig10(out: Path, quick: bool) -> Result:
     """Propulsion modes at a constant command: 4WD -> FWD -> RWD."""
     warmup, span, vx = 4.0, 4.0, 0.8  # four-wheel drive from the start: 4 s to reach speed, then the sequence
     tr = run_policy(
-        policy,
+        DEFAULT_CASTER,
         warmup + 3 * span,
         lambda t, env: (vx, 0.0, 0.0),
         lambda t: MODE_SEQUENCE[min(int(max(t - warmup, 0.0) / span), 2)],
@@ -426,7 +416,7 @@ def fig10(out: Path, quick: bool, policy: str = DEFAULT_CASTER) -> Result:
         for k in (0, 1, 2):
             ax.axvline(warmup + k * span, color="grey", lw=0.8, ls=":")
         ax.grid(alpha=0.3)
-    name = _save(fig, out, _figure("fig10_modes", policy))
+    name = _save(fig, out, "fig10_modes.png")
     rows = []
     for m, mode in enumerate(MODE_SEQUENCE):
         sl = (tr.t > warmup + m * span + 1.0) & (tr.t <= warmup + (m + 1) * span)
@@ -439,10 +429,10 @@ def fig10(out: Path, quick: bool, policy: str = DEFAULT_CASTER) -> Result:
             still = "no caster masked"
         rows.append(
             Row(
-                _label(f"Fig. 10 {mode}", policy),
+                f"Fig. 10 {mode}",
                 "masked casters still; speed kept",
                 f"{still}; mean vx error {err:.2f} m/s",
-                f"{policy} at vx {vx} m/s after {warmup:.0f} s to reach it; {span:.0f} s per mode, "
+                f"{DEFAULT_CASTER} at vx {vx} m/s after {warmup:.0f} s to reach it; {span:.0f} s per mode, "
                 f"last {span - 1:.0f} s of each",
             )  # fmt: skip
         )
@@ -452,16 +442,16 @@ def fig10(out: Path, quick: bool, policy: str = DEFAULT_CASTER) -> Result:
         before = tr.vel[(tr.t > switch - 1.0) & (tr.t <= switch), 0].mean()
         after = tr.vel[(tr.t > switch) & (tr.t <= switch + 1.0), 0].min()
         dips.append(before - after)
-    rows.append(Row(_label("Fig. 10 switch transient", policy), "-", f"largest vx dip {max(dips):.2f} m/s",
+    rows.append(Row("Fig. 10 switch transient", "-", f"largest vx dip {max(dips):.2f} m/s",
                     "drop of vx within 1 s after a switch below its mean over the 1 s before"))  # fmt: skip
     return Result(
         "fig10",
-        _label("Fig. 10: propulsion modes", policy),
+        "Fig. 10: propulsion modes",
         rows,
         [
             (
                 name,
-                f"{_label('Fig. 10', policy)}: per-caster swivel rates, caster base forward velocities (world) and "
+                f"Fig. 10: per-caster swivel rates, caster base forward velocities (world) and "
                 "trunk speed, "
                 f"4WD -> FWD -> RWD (switches at "
                 f"{warmup + span:.0f} and {warmup + 2 * span:.0f} s)",
@@ -491,7 +481,7 @@ def table2(out: Path, quick: bool) -> Result:
         if "go2_flat" not in measured or policy not in measured:
             return []
         change = 100 * (measured[policy]["cot"] / measured["go2_flat"]["cot"] - 1)
-        return [Row(_label("Table II casters vs trot", policy), "-89.1 %", f"{change:+.1f} %", how)]
+        return [Row("Table II casters vs trot", "-89.1 %", f"{change:+.1f} %", how)]
 
     rows = [cot_row(task, f"Table II {robot}", paper) for _, task, robot, paper in ROBOTS]
     rows += against_trot(DEFAULT_CASTER, "same run, same measure")
@@ -577,14 +567,14 @@ def slalom_y(x, amplitude: float):
     return -amplitude * np.cos(np.pi * np.asarray(x) / POLE_SPACING)
 
 
-def slalom(out: Path, quick: bool, policy: str = DEFAULT_CASTER) -> Result:
+def slalom(out: Path, quick: bool) -> Result:
     """Fig. 1 / Fig. 8: weave through poles 1.8 m apart (the path follower on a weaving line)."""
     n_poles, speed, offset, clearance = (4, 0.6, 0.4, 0.2) if quick else (8, 0.6, 0.4, 0.2)
     poles = POLE_SPACING * np.arange(1, n_poles + 1)
     line_x = np.arange(0.0, poles[-1] + 2 * POLE_SPACING, 0.05)
     follower = PathFollower(np.c_[line_x, slalom_y(line_x, offset)], speed, lookahead=0.8)
     duration = (n_poles + 2) * POLE_SPACING / speed + 2.0
-    tr = run_policy(policy, duration, follower, until=lambda env: follower.done)
+    tr = run_policy(DEFAULT_CASTER, duration, follower, until=lambda env: follower.done)
     passed = []
     for px in poles:
         k = np.nonzero(tr.pos[:, 0] >= px)[0]
@@ -624,41 +614,34 @@ def slalom(out: Path, quick: bool, policy: str = DEFAULT_CASTER) -> Result:
     axes[1].set(xlabel="time (s)", ylabel="joint angle (rad)")
     axes[1].legend(fontsize=6, ncol=4)
     axes[1].grid(alpha=0.3)
-    name = _save(fig, out, _figure("fig8_slalom", policy))
+    name = _save(fig, out, "fig8_slalom.png")
     return Result(
         "slalom",
-        _label("Fig. 1 / Fig. 8: slalom", policy),
+        "Fig. 1 / Fig. 8: slalom",
         [
             Row(
-                _label("Fig. 1 / Fig. 8 slalom, poles passed", policy),
+                "Fig. 1 / Fig. 8 slalom, poles passed",
                 "all (video, Fig. 1)",
                 f"{sum(passed)} of {n_poles}",
-                f"{policy}, poles {POLE_SPACING} m apart on a line; pure pursuit of y = -{offset} cos(pi x / "
+                f"{DEFAULT_CASTER}, poles {POLE_SPACING} m apart on a line; pure pursuit of y = -{offset} cos(pi x / "
                 f"{POLE_SPACING}) (alternating sides), vx {speed} m/s, wz from the heading error; passed = on its "
                 f"side, trunk never within {clearance} m",
             ),  # fmt: skip
             Row(
-                _label("Fig. 1 / Fig. 8 slalom, mean forward speed", policy),
+                "Fig. 1 / Fig. 8 slalom, mean forward speed",
                 "-",
                 f"{mean_speed:.2f} m/s" if len(done) else f"did not reach the last pole in {tr.t[-1]:.0f} s",
                 "first pole line to the last, along x",
             ),
             Row(
-                _label("Fig. 8 abduction of the legs outside the turn", policy),
+                "Fig. 8 abduction of the legs outside the turn",
                 "they open (abduct outwards)",
                 f"{abduction:+.1f} deg more than the inside legs",
                 "hip angles, outward positive, mean over the steps turning faster than 0.3 rad/s",
             ),
         ],
-        [(name, _label("Fig. 1 / Fig. 8", policy) + ": trunk path through the poles (green: passed), and the joints")],
-        [
-            "The rule turns the robot (wz) rather than commanding sideways speed"
-            + (
-                ": the default caster policy's sideways tracking is weak (docs/policies.md)."
-                if policy == DEFAULT_CASTER
-                else "."
-            )
-        ],
+        [(name, "Fig. 1 / Fig. 8" + ": trunk path through the poles (green: passed), and the joints")],
+        ["The rule turns the robot (wz) rather than commanding sideways speed."],
     )
 
 
