@@ -15,8 +15,10 @@ from __future__ import annotations
 
 import argparse
 import bisect
+import concurrent.futures
 import contextlib
 import math
+import multiprocessing
 import sys
 import time
 from collections.abc import Callable
@@ -950,27 +952,25 @@ def rank(args: argparse.Namespace, default_log_root: Path | None) -> int:
     cond_name, cond = single_condition(args, sel.env_cfg)
     print(f"[{PROG}] run {sel.run_dir}: {len(paths)} checkpoints, {len(scenarios)} scenarios, {cond_name}")
     rows = []
-    jobs = min(max(1, args.jobs), len(paths))
     work = [(sel, path, scenarios, cond, bool(args.stochastic), args.symmetrise, args.seed) for path in paths]
-    if jobs == 1:
-        done = map(_rank_row, work)
-    else:  # each checkpoint in its own process (spawned: no torch or rollout threads forked)
-        import concurrent.futures
-        import multiprocessing
 
-        pool = concurrent.futures.ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"))
-        futures = [pool.submit(_rank_row, item) for item in work]
-        done = (f.result() for f in concurrent.futures.as_completed(futures))
-    for i, (row, seconds) in enumerate(done, 1):
-        rows.append(row)
-        print(
-            f"[{PROG}] {i}/{len(paths)} {row['file']} (iteration {row['iteration']}): {row['passed']}/{row['checks']} "
-            f"checks, {row['falls']} falls ({seconds:.0f} s)",
-            flush=True,
-        )
-    if jobs > 1:
-        pool.shutdown()
-        rows.sort(key=lambda r: [p.name for p in paths].index(r["file"]))  # the order given, as with one job
+    def report(done) -> None:  # (row, seconds) per checkpoint, in the order given
+        for i, (row, seconds) in enumerate(done, 1):
+            rows.append(row)
+            print(
+                f"[{PROG}] {i}/{len(paths)} {row['file']} (iteration {row['iteration']}): "
+                f"{row['passed']}/{row['checks']} checks, {row['falls']} falls ({seconds:.0f} s)",
+                flush=True,
+            )
+
+    jobs = min(args.jobs, len(paths))
+    if jobs == 1:
+        report(map(_rank_row, work))
+    else:  # each checkpoint in its own process (spawned: no torch or rollout threads forked)
+        spawn = multiprocessing.get_context("spawn")
+        one_thread = {"initializer": torch.set_num_threads, "initargs": (1,)}  # the processes share the cores
+        with concurrent.futures.ProcessPoolExecutor(jobs, mp_context=spawn, **one_thread) as pool:
+            report(pool.map(_rank_row, work))
     print()
     print(format_ranking(rows))
     top = min(rows, key=_rank_key)
@@ -987,7 +987,6 @@ def _rank_row(item) -> tuple[dict, float]:
 
     sel, path, scenarios, cond, stochastic, symmetrise, seed = item
     t0 = time.time()
-    torch.set_num_threads(1)
     ckpt = common.load_checkpoint(path)
     env = sel.spec.env_class(eval_env_cfg(sel.env_cfg, scenarios, condition=cond))
     try:
