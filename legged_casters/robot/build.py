@@ -33,14 +33,9 @@ from legged_casters.robot.caster import (
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 MODEL_DIR = REPO_ROOT / "resources" / "robots" / "go2_caster"
-MODEL_FILES = {
-    "caster": MODEL_DIR / "go2_caster.xml",
-    "point": MODEL_DIR / "go2_point_foot.xml",
-    "wheel": MODEL_DIR / "go2_wheel.xml",
-}
-MODEL_NAMES = {"caster": "go2_caster", "point": "go2_point_foot", "wheel": "go2_wheel"}
 FOOT_KINDS = go2.FOOT_KINDS
-assert tuple(MODEL_FILES) == tuple(MODEL_NAMES) == FOOT_KINDS, "one model file and name per kind of feet"
+MODEL_NAMES = dict(zip(FOOT_KINDS, ("go2_caster", "go2_point_foot", "go2_wheel"), strict=True))
+MODEL_FILES = {feet: MODEL_DIR / f"{name}.xml" for feet, name in MODEL_NAMES.items()}
 
 STAND_KEY = "stand"
 _CONTACT_DATA = 1 | 2  # found + force
