@@ -62,6 +62,7 @@ def rollout(
         env.set_commands(cmd)
         env.set_mode("four_wheel")
         env.reset()
+        along = torch.tensor(direction)
         if slope_deg:
             downhill = math.atan2(-direction[1], -direction[0])
             env.set_ground_slope(slope_deg, downhill)
@@ -97,13 +98,12 @@ def rollout(
             phase = torch.remainder(phase + 2 * math.pi * freq * env.dt, 2 * math.pi)
             fell |= dones.bool()
             if trace is not None:
-                trace.append(env.base_lin_vel_world[:, :2] @ torch.tensor(direction))
+                trace.append(env.base_lin_vel_world[:, :2] @ along)
             if k == first:
                 start_xy = env.base_pos[:, :2].clone()
             if k > first:
                 power += env.positive_power()
-        d = torch.tensor(direction)
-        speed = ((env.base_pos[:, :2] - start_xy) @ d) / window
+        speed = ((env.base_pos[:, :2] - start_xy) @ along) / window
         power /= steps - first - 1
         speed[fell] = -1.0
         return speed.numpy(), power.numpy(), fell.numpy(), float(env.model.body_subtreemass[env.trunk_id])

@@ -1,16 +1,16 @@
 #!/usr/bin/env python3
-"""The GPU check, prepared here and run there in one command (docs/training.md, "On a GPU").
+"""The GPU check, prepared here and run there in one command (research/gpu.md).
 
-    python dev/gpu_loan/gpu.py prepare              # here: download the wheels the GPU machine lacks into .whl/,
-                                               # pack them into device calls, print the calls to make
-    python dev/gpu_loan/gpu.py prepare --dry-run    # only say which packages (no network)
-    python3 dev/gpu_loan/gpu.py stash               # there, in every call but the last: keep the carried wheels
-    python3 dev/gpu_loan/gpu.py run --out $OUT      # there, in the last call: install, then every stage
-    python dev/gpu_loan/gpu.py run --cpu --out DIR  # anywhere: the same stages, Warp on the CPU, tiny sizes
+    python dev/gpu_loan/gpu.py prepare                # here: download the wheels the GPU machine lacks
+                                                      # into .whl/, pack them into device calls, print them
+    python dev/gpu_loan/gpu.py prepare --dry-run      # only say which packages (no network)
+    python3 dev/gpu_loan/gpu.py stash                 # there, in every call but the last: keep the wheels
+    python3 dev/gpu_loan/gpu.py run --out $OUT        # there, in the last call: install, then every stage
+    python dev/gpu_loan/gpu.py run --cpu --out DIR    # anywhere: the same stages, Warp on the CPU, tiny sizes
     python dev/gpu_loan/gpu.py report gpu_check.json  # the table again, from a run's JSON
     python3 dev/gpu_loan/gpu.py train --out $OUT --deadline-s 560 -- --task caster_omni --sim_backend warp ...
-                                               # there, instead of `run`: install, then one training with
-                                               # a deadline, its run folder packed into --out (gpu_train.py)
+                                                      # there, instead of `run`: install, then one training
+                                                      # with a deadline, its run folder packed (gpu_train.py)
 
 `run` writes DIR/gpu_check.json (everything measured), DIR/gpu_check.txt (a table) and
 DIR/gpu_check.log (the stages' output, cut to their tails). The stages and their time
@@ -28,7 +28,6 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[2]
 DEFAULT_WORK = Path(tempfile.gettempdir()) / "legged_casters_gpu_check"
 """The check's runs, logs and Warp kernel cache (work/warp_cache, which `train` uses too)."""
-sys.path.insert(0, str(REPO))
 
 import gpu_check  # noqa: E402  (the modules beside this script; standard library only)
 import gpu_train  # noqa: E402

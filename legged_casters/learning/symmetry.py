@@ -5,7 +5,8 @@ The Go2 and its casters are mirror images of themselves across the trunk's sagit
 plane (tests/test_symmetry.py checks every joint of the three robots), and so is each task:
 a robot told to turn left should do what its mirror image does when told to turn right.
 A policy trained without that knowledge need not: four caster_omni runs (research/log.md,
-"Left-right mirror symmetry") turned right at 0.6-0.7 rad/s and left at 0.1-0.4 under the same 0.8 rad/s command.
+"Left-right mirror symmetry") turned right at 0.6-0.7 rad/s and left at 0.1-0.4 under the
+same 0.8 rad/s command.
 
 `train.symmetry.mode` switches it on:
 * "loss": an extra loss, `mirror_loss_coeff` x the mean squared difference between the

@@ -26,7 +26,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
 import top_speed  # noqa: E402
 
-REST = 0.1
+from legged_casters.tools.evaluate import REST_SPEED as REST  # noqa: E402  (the stop checks' rest speed)
 
 
 def brake(task: str, params: list[dict], forwards: bool, seconds: float) -> list[tuple[float, float] | None]:

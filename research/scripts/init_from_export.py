@@ -18,9 +18,10 @@ import argparse
 from pathlib import Path
 
 import torch
+from rsl_rl.modules import EmpiricalNormalization
 
-EPS = 1e-2
-"""rsl_rl's EmpiricalNormalization eps: the export stores std + eps as its denominator."""
+EPS = EmpiricalNormalization(1).eps
+"""The training normaliser's eps: the export stores its std + eps as the denominator."""
 
 
 def main() -> None:
