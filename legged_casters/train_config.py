@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
 from legged_casters.config import ConfigError
 from legged_casters.learning.estimator import TARGET_GROUP
 from legged_casters.learning.symmetry import MIRROR_FUNCTION
+
+STAGE_TRAIN_KEY = re.compile(r"^(save_interval|algorithm\.\w+)$")
+"""The train config keys a stage (TrainCfg.stages) may set."""
 
 
 @dataclass
@@ -110,12 +114,50 @@ class TrainCfg:
     algorithm: PPOCfg = field(default_factory=PPOCfg)
     estimator: EstimatorCfg = field(default_factory=EstimatorCfg)
     symmetry: SymmetryCfg = field(default_factory=SymmetryCfg)
+    stages: dict[int, dict[str, Any]] = field(default_factory=dict)
+    """Settings that change during the run: {iteration: {key: value}}. From the iteration after
+    `iteration` on, each env config key (as `--set` names it) or `train.`-prefixed train config
+    key (`train.save_interval`, `train.algorithm.<field>`) takes its value, e.g.
+    {800: {"rewards.scales.action_rate": -0.05}, 950: {"train.save_interval": 10}}. At each
+    such iteration the run saves model_<iteration>.pt and goes on in the same process with the
+    new settings, as a resume would (policy, optimizer, normaliser and curriculum kept). The
+    run's env.yaml holds the settings of its first iteration; play, evaluate and export build a
+    checkpoint's env with the stages it was trained under. Empty: one setting throughout."""
     env_per_process: dict[str, list[Any]] = field(default_factory=dict)
     """The task's default `train.py --set-per-process`: {env config key: [value of process 0,
     1, ...]}, process r taking entry r modulo the list's length (so a 2-entry list alternates
     over 4 processes). Applies to a new run of two or more processes (`--procs`) for each key
     not given by --set-per-process or --set; one process keeps the env config as it is,
     which is process 0's."""
+
+    def stage_overrides(self, iteration: int) -> tuple[dict[str, Any], dict[str, Any]]:
+        """(env overrides, train overrides) of `stages` in force at iteration `iteration`
+        (counted from 1): those of every stage that starts before it, later stages winning."""
+        env: dict[str, Any] = {}
+        train: dict[str, Any] = {}
+        for start in sorted(self.stages):
+            if start >= iteration:
+                break
+            for key, value in self.stages[start].items():
+                if key.startswith("train."):
+                    train[key.removeprefix("train.")] = value
+                else:
+                    env[key] = value
+        return env, train
+
+    def check_stages(self) -> None:
+        """Stage iterations positive, and train keys only those a running PPO may change."""
+        for start, settings in self.stages.items():
+            if start < 1:
+                raise ConfigError(f"stages: iteration {start} must be at least 1 (the stage starts after it)")
+            if not isinstance(settings, dict) or not settings:
+                raise ConfigError(f"stages.{start}: expected a mapping of config keys to values, got {settings!r}")
+            for key in settings:
+                if key.startswith("train.") and not STAGE_TRAIN_KEY.match(key.removeprefix("train.")):
+                    raise ConfigError(
+                        f"stages.{start}: {key} cannot change during a run; a stage may set train.save_interval "
+                        "and train.algorithm.<field> (networks, seed and schedules are the run's)"
+                    )
 
     def for_env(self, env) -> dict:
         """to_rsl_rl() with what the env says about its actor (prior, observation columns)."""

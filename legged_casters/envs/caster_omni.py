@@ -421,8 +421,8 @@ def _skate_rewards() -> RewardsCfg:
     return r
 
 
-def caster_omni_cfg() -> CasterOmniCfg:
-    """The skating configuration, the default caster task (research/log.md has the
+def _skate_cfg() -> CasterOmniCfg:
+    """The skating configuration the caster tasks build on (research/log.md has the
     measurements behind each change)."""
     cfg = CasterOmniCfg()
     cfg.sim.timestep = 0.005
@@ -459,7 +459,7 @@ def caster_omni_stop_cfg() -> CasterOmniCfg:
     term only once the trunk is slow (so they may brake or hold on a slope first), and the
     critic given the ground's tilt."""
     cfg = caster_omni_sym_cfg()
-    cfg.gait.amplitude_law_backward = [[0.0, 0.0], [0.25, 0.2], [0.5, 0.25], [1.0, 0.35]]
+    cfg.gait.amplitude_law_backward = BACKWARD_AMPLITUDE_LAW
     cfg.commands.standing_fraction = 0.25
     cfg.commands.reverse_fraction = 0.15
     cfg.terrain.slope_deg = 6.0
@@ -475,7 +475,7 @@ def caster_omni_sym_cfg() -> CasterOmniCfg:
     instead of 0.6. Its train config adds the exact mirror symmetry, the
     fixed and then lowered exploration noise, and the 2 ms physics step in every second
     process."""
-    cfg = caster_omni_cfg()
+    cfg = _skate_cfg()
     cfg.history_length = 50
     cfg.domain_rand.action_latency_range = (0.0, 0.02)
     cfg.rewards.scales["tracking_ang_vel"] = 2.0
@@ -491,7 +491,8 @@ def caster_omni_paper_cfg() -> CasterOmniCfg:
     return cfg
 
 
-def caster_omni_train_cfg() -> TrainCfg:
+def _skate_train_cfg() -> TrainCfg:
+    """The PPO set-up of the skating tasks."""
     cfg = TrainCfg(experiment_name="caster_omni", max_iterations=1000)
     # Sized for the 2-core machines by measurement (scripts/bench_train.py, docs/training.md): the
     # velocity estimator reads the 420-value history, the actor's MLP only the current terms
@@ -534,7 +535,7 @@ def caster_omni_sym_train_cfg() -> TrainCfg:
     over iterations 750-900, and (with 2 or more processes, `--procs`) process 0 at 5 ms
     physics, process 1 at 2 ms; seed 2. The shipped caster_omni policy's runs started from it
     with seed 3 (resources/policies/caster_omni/README.md)."""
-    cfg = caster_omni_train_cfg()
+    cfg = _skate_train_cfg()
     cfg.experiment_name = "caster_omni_sym"
     cfg.seed = 2
     cfg.policy.learn_noise_std = False
@@ -542,4 +543,33 @@ def caster_omni_sym_train_cfg() -> TrainCfg:
     cfg.estimator.skip_terms = ("commands",)
     cfg.symmetry.mode = "exact"
     cfg.env_per_process = {"sim.timestep": [0.005, 0.002], "sim.decimation": [4, 10]}
+    return cfg
+
+
+BACKWARD_AMPLITUDE_LAW = [[0.0, 0.0], [0.25, 0.2], [0.5, 0.25], [1.0, 0.35]]
+"""The prior's amplitude for a backward push against |commanded vx| (GaitPriorCfg.amplitude_law_backward)."""
+
+
+def caster_omni_cfg() -> CasterOmniCfg:
+    """`caster_omni`, the default caster task: the env of its first iteration (that of
+    `caster_omni_sym`); its train config's stages change it during the run."""
+    return caster_omni_sym_cfg()
+
+
+def caster_omni_train_cfg() -> TrainCfg:
+    """`caster_omni`: the shipped policy's recipe as one run. caster_omni_sym's training
+    with seed 3 and three stages: after iteration 500 the prior's backward amplitude law,
+    after 800 actions observed 0-20 ms late and the action-rate penalty x5, after 950 a
+    checkpoint every 10 iterations; after 1000 iterations the run ranks its newest five
+    checkpoints (960-1000) by the full evaluation and selects one."""
+    cfg = caster_omni_sym_train_cfg()
+    cfg.experiment_name = "caster_omni"
+    cfg.seed = 3
+    cfg.max_iterations = 1000
+    cfg.select_last = 5
+    cfg.stages = {
+        500: {"gait.amplitude_law_backward": BACKWARD_AMPLITUDE_LAW},
+        800: {"domain_rand.observation_delay_range": [0.0, 0.02], "rewards.scales.action_rate": -0.05},
+        950: {"train.save_interval": 10},
+    }
     return cfg

@@ -54,11 +54,14 @@ def install_progress_hook(
     evaluator=None,
     eval_every: int = 0,
     max_seconds: float | None = None,
+    run_total: int | None = None,
 ) -> None:
     """Wrap the rsl_rl logger's per-iteration report with a one-line progress summary and,
     every `eval_every` iterations, the deterministic evaluation (TensorBoard Eval/...).
     With `max_seconds`, the iteration that ends past that much wall time is the last:
-    BudgetReached is raised after its report (and on rank 0 its final checkpoint)."""
+    BudgetReached is raised after its report (and on rank 0 its final checkpoint).
+    `run_total`: the iteration the whole run ends at, when this learn() is one stage of it
+    (TrainCfg.stages): the progress line and its ETA count to it."""
     started = time.time()
     logger = runner.logger
     original = logger.log
@@ -77,7 +80,8 @@ def install_progress_hook(
         with contextlib.redirect_stdout(report):
             original(**kw)
         if console == "block":  # rsl_rl counts from 0; say the iteration's number as ours does
-            print(ITERATION_RE.sub(lambda m: f"Learning iteration {it + 1}/{m.group(2)}", report.getvalue()), end="")
+            text = report.getvalue()
+            print(ITERATION_RE.sub(lambda m: f"Learning iteration {it + 1}/{run_total or m.group(2)}", text), end="")
         stop = it + 1 < total_it and budget_reached(runner, started, max_seconds)
         if logger.writer is None:
             if stop:
@@ -88,7 +92,8 @@ def install_progress_hook(
             runner.write_checkpoint(os.path.join(logger.log_dir, f"model_{it + 1}.pt"))
         it_time = kw["collect_time"] + kw["learn_time"]
         done = it + 1 - start_it
-        eta = logger.tot_time / max(done, 1) * (total_it - it - 1)
+        shown_total = run_total or total_it
+        eta = logger.tot_time / max(done, 1) * (shown_total - it - 1)
         reward = statistics.mean(logger.rewbuffer) if logger.rewbuffer else math.nan
         length = statistics.mean(logger.lenbuffer) if logger.lenbuffer else math.nan
         std = kw.get("action_std")
@@ -120,7 +125,7 @@ def install_progress_hook(
             )
             ev += f" falls {last_eval.get('falls', 0):.0f}"
         print(
-            f"[{task}] it {it + 1}/{total_it} | {steps_per_it / it_time:,.0f} steps/s | {it_time:.2f} s/it "
+            f"[{task}] it {it + 1}/{shown_total} | {steps_per_it / it_time:,.0f} steps/s | {it_time:.2f} s/it "
             f"(collect {kw['collect_time']:.2f}) | mean reward {reward:.3f} | ep len {length:.0f}{ev} | "
             f"ETA {datetime.timedelta(seconds=int(eta))}",
             flush=True,

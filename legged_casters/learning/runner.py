@@ -101,7 +101,9 @@ class CheckpointingRunner(OnPolicyRunner):
             path = os.path.join(os.path.dirname(path), f"model_{self.completed_iterations()}.pt")
         self.write_checkpoint(path, infos)
 
-    def write_checkpoint(self, path: str, infos: dict | None = None) -> None:
+    def checkpoint(self, infos: dict | None = None) -> dict:
+        """What a model_<n>.pt holds: policy, critic, normaliser, optimizer, the last iteration
+        done and the env's state."""
         saved = self.alg.save()
         saved["iter"] = self.current_learning_iteration
         saved["infos"] = {
@@ -110,6 +112,10 @@ class CheckpointingRunner(OnPolicyRunner):
             "env_state": self.env.get_state(),
             "saved_at": datetime.datetime.now().isoformat(timespec="seconds"),
         }
+        return saved
+
+    def write_checkpoint(self, path: str, infos: dict | None = None) -> None:
+        saved = self.checkpoint(infos)
         common.save_checkpoint_atomic(saved, path)
         self.logger.save_model(path, self.current_learning_iteration)
 

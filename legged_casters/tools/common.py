@@ -488,7 +488,28 @@ class Selection:
     ckpt_path: Path
     ckpt: dict
     env_cfg: Any
+    """The env config of this checkpoint's training: the run's, with the stages it was trained under."""
     train_cfg: Any
+    run_env_cfg: Any = None
+    """The run's env.yaml as it is (the settings of its first iteration)."""
+
+    def env_cfg_for(self, ckpt: dict) -> Any:
+        """The env config another checkpoint of the same run was trained under."""
+        return stage_env_cfg(self.run_env_cfg or self.env_cfg, self.train_cfg, checkpoint_iteration(ckpt))
+
+
+def checkpoint_iteration(ckpt: dict) -> int:
+    """The iterations done when a checkpoint was saved (model_<n>.pt: n)."""
+    return int(ckpt.get("iter", -1)) + 1
+
+
+def stage_env_cfg(env_cfg: Any, train_cfg: Any, iteration: int) -> Any:
+    """`env_cfg` (a run's env.yaml) as it was at iteration `iteration` of a run with stages
+    (TrainCfg.stages); unchanged for a run without."""
+    if not getattr(train_cfg, "stages", None):
+        return env_cfg
+    overrides, _ = train_cfg.stage_overrides(iteration)
+    return with_overrides(env_cfg, overrides, f"stages (iteration {iteration})")
 
 
 def select_task(args: argparse.Namespace) -> str:
@@ -516,7 +537,8 @@ def select_checkpoint(args: argparse.Namespace, default_log_root: Path | None) -
     if saved_task and saved_task != task:
         raise UsageError(f"checkpoint {ckpt_path} belongs to task {saved_task!r}; pass --task {saved_task}")
     env_cfg, train_cfg = run_configs(spec, run_dir)
-    return Selection(task, spec, run_dir, ckpt_path, ckpt, env_cfg, train_cfg)
+    staged = stage_env_cfg(env_cfg, train_cfg, checkpoint_iteration(ckpt))
+    return Selection(task, spec, run_dir, ckpt_path, ckpt, staged, train_cfg, env_cfg)
 
 
 EVAL_OVERRIDES = {

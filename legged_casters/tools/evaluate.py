@@ -988,7 +988,7 @@ def _rank_row(item) -> tuple[dict, float]:
     sel, path, scenarios, cond, stochastic, symmetrise, seed = item
     t0 = time.time()
     ckpt = common.load_checkpoint(path)
-    env = sel.spec.env_class(eval_env_cfg(sel.env_cfg, scenarios, condition=cond))
+    env = sel.spec.env_class(eval_env_cfg(sel.env_cfg_for(ckpt), scenarios, condition=cond))
     try:
         policy = checkpoint_policy(load_actor(env, sel.train_cfg, ckpt, path), stochastic)
         results = run_policy(env, policy, scenarios, symmetrise, seed)
@@ -1068,14 +1068,14 @@ def rank_robot_clock(args: argparse.Namespace, sel, paths: list[Path], scenarios
         ckpt = common.load_checkpoint(path)
         rows, policy = [], None
         for name, cond in conditions:
-            env = sel.spec.env_class(eval_env_cfg(sel.env_cfg, scenarios, condition=cond))
+            env = sel.spec.env_class(eval_env_cfg(sel.env_cfg_for(ckpt), scenarios, condition=cond))
             try:
                 if policy is None:
                     policy = checkpoint_policy(load_actor(env, sel.train_cfg, ckpt, path), bool(args.stochastic))
                 results = run_policy(env, policy, scenarios, args.symmetrise, args.seed)
             finally:
                 env.close()
-            falls = falls_by_seed(sel.spec, sel.env_cfg, cond, scenarios, policy, args, seeds, results)
+            falls = falls_by_seed(sel.spec, sel.env_cfg_for(ckpt), cond, scenarios, policy, args, seeds, results)
             rows.append((name, results, verdict(results, sel.task), falls))
         tol = tolerance(rows)[1:]
         row = {

@@ -318,17 +318,29 @@ def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Pa
             f"--procs run ({_flags(train_cfg.env_per_process)}); this run has one process and keeps process 0's "
             "config (train on the CPU with --procs 2 or auto for the mix)"
         )
-    env_cfg = process_env_cfg(env_cfg, per_process, rank, world)
-    env_fields = {"sim.backend": args.sim_backend, "sim.device": device}
-    if args.num_envs is not None:
-        env_fields["num_envs"] = args.num_envs
     train_fields = {}
     for flag in ("max_iterations", "seed", "experiment_name", "run_name"):
         if getattr(args, flag) is not None:
             train_fields[flag] = getattr(args, flag)
     train_cfg = common.with_overrides(train_cfg, train_fields, "train flags")
-    env_fields["seed"] = train_cfg.seed + rank  # each process of a distributed run its own env draws
-    env_cfg = common.with_overrides(env_cfg, env_fields, "env flags")
+    train_cfg.check_stages()
+    env_fields = {"sim.backend": args.sim_backend, "sim.device": device, "seed": train_cfg.seed + rank}
+    if args.num_envs is not None:
+        env_fields["num_envs"] = args.num_envs  # each process of a distributed run its own env draws (seed)
+
+    def configs_at(iteration: int) -> tuple[Any, Any]:
+        """This process's env config and the train config for iteration `iteration` (from 1):
+        the task's or run's, its stages (TrainCfg.stages) up to then, --set again on top (what
+        the command line says wins), the process's own values and the flags."""
+        stage_env, stage_train = train_cfg.stage_overrides(iteration)
+        cfg = common.with_overrides(env_cfg, stage_env, f"stages (iteration {iteration})")
+        cfg = common.with_overrides(cfg, args.env_set, "--set")
+        cfg = common.with_overrides(process_env_cfg(cfg, per_process, rank, world), env_fields, "env flags")
+        return cfg, common.with_overrides(train_cfg, stage_train, f"stages (iteration {iteration})")
+
+    first_env_cfg = common.with_overrides(process_env_cfg(env_cfg, per_process, rank, world), env_fields, "env flags")
+    for it in sorted(train_cfg.stages):  # every stage's settings checked before the simulation starts
+        configs_at(it + 1)
     experiment = train_cfg.experiment_name
     if run_dir is None:
         run_dir = common.new_run_dir(root, experiment, train_cfg.run_name)
@@ -337,6 +349,52 @@ def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Pa
     pin_to_core(device)  # a CPU rank of a distributed run only
     common.limit_cpu_threads(device, args.torch_threads)
     torch.manual_seed(train_cfg.seed + rank)
+    done = int(ckpt["iter"]) + 1 if ckpt is not None else 0
+    end = done + train_cfg.max_iterations
+    cuts = [done] + [s for s in sorted(train_cfg.stages) if done < s < end] + [end]
+    started = time.time()
+    try:
+        for first, last in zip(cuts, cuts[1:], strict=False):
+            seg_env_cfg, seg_train_cfg = configs_at(first + 1)
+            if first > done and rank == 0:
+                stage = train_cfg.stages[first]
+                print(f"[{PROG}] stage after iteration {first}: {', '.join(f'{k}={v}' for k, v in stage.items())}")
+            budget = None
+            if args.max_minutes is not None:
+                budget = args.max_minutes * 60.0 - (time.time() - started)
+            outcome = _train_segment(
+                args, task, spec, seg_env_cfg, seg_train_cfg, run_dir, device, rank, world, ckpt, ckpt_path,
+                last - first, end, budget,
+                run_files=(experiment, first_env_cfg, train_cfg, argv, per_process) if first == done else None,
+            )  # fmt: skip
+            if isinstance(outcome, int):
+                return outcome
+            if outcome is None:
+                break
+            ckpt, ckpt_path = outcome, run_dir / f"model_{last}.pt"
+    finally:
+        if world > 1 and torch.distributed.is_initialized():
+            torch.distributed.destroy_process_group()
+    if rank == 0:
+        last = common.checkpoints(run_dir)[-1][1]
+        print(f"[{PROG}] done: {last}")
+        logdir = root if root in run_dir.parents else run_dir  # a resumed run given by its own path
+        print(
+            f"[{PROG}] watch: tensorboard --logdir {logdir}    play: python play.py --task {task} --load_run {run_dir}"
+        )
+        if train_cfg.select_last:
+            return select_after_training(task, run_dir, train_cfg)
+    return common.EXIT_OK
+
+
+def _train_segment(
+    args, task, spec, env_cfg, train_cfg, run_dir, device, rank, world, ckpt, ckpt_path, iterations, run_end,
+    budget, run_files,
+) -> dict | int | None:  # fmt: skip
+    """`iterations` PPO iterations on a new env and runner of these configs, from `ckpt` if
+    given: the state reached as a checkpoint dict (for the next stage); None when the
+    --max_minutes budget ended the run; 130 when it was interrupted. `run_files`: on the
+    first segment, what the run folder records."""
     t0 = time.time()
     env = spec.env_class(env_cfg)
     print(
@@ -355,22 +413,24 @@ def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Pa
         runner.logger._store_code_state = list
         if ckpt is not None:
             runner.load_checkpoint(ckpt, ckpt_path)
-            print(f"[{PROG}] resumed {ckpt_path} after {runner.current_learning_iteration} iterations")
-        if rank == 0:
-            _write_run_files(run_dir, task, experiment, env_cfg, train_cfg, argv, ckpt_path, per_process)
+            if run_files is not None:
+                print(f"[{PROG}] resumed {ckpt_path} after {runner.current_learning_iteration} iterations")
+        if rank == 0 and run_files is not None:
+            experiment, first_env_cfg, full_train_cfg, argv, per_process = run_files
+            _write_run_files(run_dir, task, experiment, first_env_cfg, full_train_cfg, argv, ckpt_path, per_process)
             print(f"[{PROG}] run folder {run_dir}")
         if args.eval_every and rank == 0:
             from legged_casters.tools.evaluate import DeterministicEval
 
             evaluator = DeterministicEval(spec, env_cfg)
-        budget = args.max_minutes * 60.0 if args.max_minutes is not None else None
-        install_progress_hook(runner, args.console, task, evaluator, args.eval_every, budget)
+        install_progress_hook(runner, args.console, task, evaluator, args.eval_every, budget, run_end)
         _stop_on_signals(once=world > 1)
         try:
-            runner.learn(num_learning_iterations=train_cfg.max_iterations, init_at_random_ep_len=True)
+            runner.learn(num_learning_iterations=iterations, init_at_random_ep_len=True)
         except BudgetReached as stop:
             if rank == 0:
                 print(f"[{PROG}] --max_minutes {args.max_minutes:g}: stopped after iteration {stop.args[0]}")
+            return None
         except KeyboardInterrupt:
             if rank == 0:  # the run folder is rank 0's (the others never write theirs)
                 latest = common.checkpoints(run_dir)
@@ -383,22 +443,11 @@ def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Pa
                     print(f"\n[{PROG}] interrupted before the first checkpoint (saved every {every} iterations): "
                           f"no model_<iteration>.pt to continue from in {run_dir}", file=sys.stderr)  # fmt: skip
             return 130
+        return runner.checkpoint()
     finally:
         env.close()
         if evaluator is not None:
             evaluator.close()
-        if world > 1 and torch.distributed.is_initialized():
-            torch.distributed.destroy_process_group()
-    if rank == 0:
-        last = common.checkpoints(run_dir)[-1][1]
-        print(f"[{PROG}] done: {last}")
-        logdir = root if root in run_dir.parents else run_dir  # a resumed run given by its own path
-        print(
-            f"[{PROG}] watch: tensorboard --logdir {logdir}    play: python play.py --task {task} --load_run {run_dir}"
-        )
-        if train_cfg.select_last:
-            return select_after_training(task, run_dir, train_cfg)
-    return common.EXIT_OK
 
 
 def select_after_training(task: str, run_dir: Path, train_cfg) -> int:
