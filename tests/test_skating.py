@@ -223,7 +223,7 @@ def test_skating_task_observes_the_clock_and_runs_at_5ms(env):
     names = [n for n, _, _ in env.obs_layout["policy"]]
     assert names == ["commands", "mode_mask", "ang_vel", "projected_gravity", "joint_pos", "joint_vel", "actions",
                      "proprio_history", "gait_phase"]  # fmt: skip
-    assert env.observation_dims()["policy"] == 49 + 10 * 42 + 2
+    assert env.observation_dims()["policy"] == 49 + 50 * 42 + 2  # 50 policy steps of history
     assert env.model.opt.timestep == pytest.approx(0.005) and env.dt == pytest.approx(0.02)
     assert env.model.geom_solref[:, 0].min() >= 0.01 - 1e-9  # raised to 2 x timestep
 

@@ -455,7 +455,17 @@ def select_after_training(task: str, run_dir: Path, train_cfg) -> int:
     and record the first in the run's selected.yaml (evaluate.py --select)."""
     from legged_casters.tools import evaluate
 
-    saved = [it for it, _ in common.checkpoints(run_dir)][-train_cfg.select_last :]
+    saved = [it for it, _ in common.checkpoints(run_dir)]
+    if train_cfg.stages:  # only checkpoints trained with every stage's settings are the recipe's
+        after = max(train_cfg.stages)
+        saved = [it for it in saved if it > after]
+        if not saved:
+            print(
+                f"[{PROG}] no checkpoint after the last stage (iteration {after}) to select from: play, evaluate and "
+                "export load the newest"
+            )
+            return common.EXIT_OK
+    saved = saved[-train_cfg.select_last :]
     print(f"[{PROG}] selecting the checkpoint by the full evaluation: iterations {', '.join(map(str, saved))}")
     from legged_casters.sim.base import usable_cpus
 
