@@ -69,7 +69,8 @@ def test_each_stage_runs_with_its_settings_and_saves_where_it_starts(staged):
     # env.yaml holds the first iteration's settings, train.yaml the stages
     saved_env = load_yaml(type(registry.get_task(TASK).env_cfg), run_dir / "env.yaml")
     assert saved_env.rewards.scales["action_rate"] == default
-    assert load_yaml(type(registry.get_task(TASK).train_cfg), run_dir / "train.yaml").stages[3]["train.save_interval"] == 1
+    saved_train = load_yaml(type(registry.get_task(TASK).train_cfg), run_dir / "train.yaml")
+    assert saved_train.stages[3]["train.save_interval"] == 1
 
 
 def test_the_policy_goes_on_across_a_stage(staged):
