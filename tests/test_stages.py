@@ -32,12 +32,9 @@ def _train(root: Path, *extra: str) -> tuple[int, str]:
     return rc, out.getvalue()
 
 
-@pytest.fixture(scope="module")
-def staged(tmp_path_factory):
-    """A 5-iteration run whose action-rate weight changes after iterations 1 and 3 (where it
-    also starts saving every iteration), then resumed for one more; the weight of every env
-    the runs built, in order."""
-    root = tmp_path_factory.mktemp("logs")
+@contextlib.contextmanager
+def _recording_action_rate():
+    """The action-rate weight of every env built inside the block, in order."""
     built: list[float] = []
     original = Go2FlatEnv.__init__
 
@@ -47,6 +44,16 @@ def staged(tmp_path_factory):
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(Go2FlatEnv, "__init__", record)
+        yield built
+
+
+@pytest.fixture(scope="module")
+def staged(tmp_path_factory):
+    """A 5-iteration run whose action-rate weight changes after iterations 1 and 3 (where it
+    also starts saving every iteration), then resumed for one more; the weight of every env
+    the runs built, in order."""
+    root = tmp_path_factory.mktemp("logs")
+    with _recording_action_rate() as built:
         rc, out = _train(root, "--max_iterations", "5", "--train-set", STAGES)
         assert rc == 0, out
         first = list(built)
@@ -105,15 +112,7 @@ def test_a_checkpoint_is_evaluated_with_the_settings_it_was_trained_under(staged
 
 
 def test_the_command_line_wins_over_a_stage(tmp_path):
-    built: list[float] = []
-    original = Go2FlatEnv.__init__
-
-    def record(self, cfg, *args, **kwargs):
-        built.append(cfg.rewards.scales["action_rate"])
-        original(self, cfg, *args, **kwargs)
-
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(Go2FlatEnv, "__init__", record)
+    with _recording_action_rate() as built:
         rc, out = _train(
             tmp_path, "--max_iterations", "2", "--train-set", STAGES, "--set", "rewards.scales.action_rate=-0.9"
         )

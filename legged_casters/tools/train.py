@@ -338,7 +338,7 @@ def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Pa
         cfg = common.with_overrides(process_env_cfg(cfg, per_process, rank, world), env_fields, "env flags")
         return cfg, common.with_overrides(train_cfg, stage_train, f"stages (iteration {iteration})")
 
-    first_env_cfg = common.with_overrides(process_env_cfg(env_cfg, per_process, rank, world), env_fields, "env flags")
+    first_env_cfg, _ = configs_at(1)  # what env.yaml records: the run's first iteration
     for it in sorted(train_cfg.stages):  # every stage's settings checked before the simulation starts
         configs_at(it + 1)
     experiment = train_cfg.experiment_name
@@ -349,7 +349,7 @@ def train(args: argparse.Namespace, argv: list[str] | None, default_log_root: Pa
     pin_to_core(device)  # a CPU rank of a distributed run only
     common.limit_cpu_threads(device, args.torch_threads)
     torch.manual_seed(train_cfg.seed + rank)
-    done = int(ckpt["iter"]) + 1 if ckpt is not None else 0
+    done = common.checkpoint_iteration(ckpt) if ckpt is not None else 0
     end = done + train_cfg.max_iterations
     cuts = [done] + [s for s in sorted(train_cfg.stages) if done < s < end] + [end]
     started = time.time()
