@@ -22,7 +22,9 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import queue
+import socket
 import threading
+import time
 
 import mujoco
 import numpy as np
@@ -105,16 +107,37 @@ class _SimKeys(plugin.SimPlugin):
 
 
 @contextlib.contextmanager
-def _bound_to(host: str):
+def _bound_to(host: str, sockets: list[socket.socket]):
     """Studio's web viewer binds every interface ('::'); bind `host` instead while it starts
-    (and leave its banner out: play.py prints the address it really serves)."""
+    (and leave its banner out: play.py prints the address it really serves). The bound
+    socket is appended to `sockets`."""
     bind, banner = web_server.bind_public_socket, web_viewer._print_url_banner
-    web_viewer.web_server.bind_public_socket = lambda _host, port=0: bind(host, port)
+
+    def bind_host(_host: str, port: int = 0) -> socket.socket:
+        sockets.append(bind(host, port))
+        return sockets[-1]
+
+    web_viewer.web_server.bind_public_socket = bind_host
     web_viewer._print_url_banner = lambda *a, **k: None
     try:
         yield
     finally:
         web_viewer.web_server.bind_public_socket, web_viewer._print_url_banner = bind, banner
+
+
+LISTEN_TIMEOUT = 30.0
+"""Seconds the web viewer's server thread gets to start listening on its bound socket."""
+
+
+def _wait_listening(sockets: list[socket.socket], timeout: float) -> bool:
+    """True once the viewer's bound socket listens (SO_ACCEPTCONN), False after `timeout` s."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        with contextlib.suppress(OSError):
+            if sockets and sockets[-1].getsockopt(socket.SOL_SOCKET, socket.SO_ACCEPTCONN):
+                return True
+        time.sleep(0.01)
+    return False
 
 
 class WebDriveView:
@@ -124,11 +147,12 @@ class WebDriveView:
         self.model, self.data = model, mujoco.MjData(model)
         self._sim_keys = _SimKeys()
         ready: queue.Queue = queue.Queue()
+        sockets: list[socket.socket] = []
         config = viewer_protocol.ViewerConfig(gfx="web", http_port=port, title="legged_casters drive")
 
         def target(endpoint) -> None:
             try:
-                with _bound_to(host):
+                with _bound_to(host, sockets):
                     viewer = web_viewer.WebViewer(config, endpoint, plugins=[_BrowserKeys(track_body, 2.0)])
             except BaseException as err:
                 ready.put(err)
@@ -142,6 +166,12 @@ class WebDriveView:
             with contextlib.suppress(BaseException):
                 self.handle.close()
             raise RuntimeError(f"the web viewer could not start on {host}:{port}: {got}") from got
+        # the viewer binds its socket at once but listens from its server thread: the address
+        # is only given out once the page can be opened
+        if not _wait_listening(sockets, LISTEN_TIMEOUT):
+            with contextlib.suppress(BaseException):
+                self.handle.close()
+            raise RuntimeError(f"the web viewer bound {host}:{got} but did not listen within {LISTEN_TIMEOUT:.0f} s")
         self.host, self.port = host, got
         mujoco.mj_forward(model, self.data)
         self.handle.set_model(model, data=self.data)
