@@ -93,6 +93,7 @@ def rollout(
                 uphill_deadband=0.0, max_amplitude=0.0, velocity=torch.zeros(n, 2), speed_feedback=0.0,
                 command_share=1.0, law_fwd=torch.zeros(0, 2), law_back=torch.zeros(0, 2), law_adds=False,
                 tilt_backward=per_leg["tilt"], yaw_rate=torch.zeros(n), yaw_feedback=0.0, yaw_command_share=1.0,
+                tilt_forward_brake=per_leg["tilt"], brake_blend_speed=1.0,
             )  # fmt: skip
             _, _, dones, _ = env.step(offsets / env.cfg.control.action_scale)
             phase = torch.remainder(phase + 2 * math.pi * freq * env.dt, 2 * math.pi)

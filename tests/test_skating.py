@@ -116,6 +116,29 @@ def test_a_speed_law_sets_the_amplitude_of_the_forward_or_backward_push():
             GaitPriorCfg(amplitude_law=bad)
 
 
+def test_a_forward_push_that_brakes_a_backward_roll_takes_its_own_tilt():
+    """tilt_forward_brake: a forward push tilts by it while the estimate rolls backwards
+    (blended over brake_blend_speed); a forward drive and every backward push keep their
+    tilts; it needs the estimate (speed feedback)."""
+    kw = dict(enabled=True, amplitude=0.2, tilt=0.2, tilt_backward=0.25, thigh_share=0.0, full_speed=0.25,
+              speed_feedback=1.0, command_share=0.3)  # fmt: skip
+    plain, brake = GaitPriorCfg(**kw), GaitPriorCfg(**kw, tilt_forward_brake=0.02, brake_blend_speed=0.2)
+
+    def calf(cfg, cmd, v):
+        out = gait_prior(cfg, torch.tensor([cmd]), torch.zeros(1, 4), torch.tensor([0.0]), velocity=torch.tensor([v]))
+        return out.view(4, 3)[:, 2].tolist()  # the calf makes all the pitch tilt at thigh_share 0
+
+    assert calf(brake, (0.0, 0, 0), (-1.0, 0.0)) == pytest.approx([0.02] * 4)  # zero command, rolling back
+    assert calf(brake, (0.0, 0, 0), (-0.1, 0.0)) == pytest.approx([0.11 * 0.1 / 0.25] * 4)  # half-way, ramp 0.4
+    assert calf(plain, (0.0, 0, 0), (-1.0, 0.0)) == pytest.approx([0.2] * 4)
+    same = (((1.0, 0, 0), (0.5, 0.0)), ((1.0, 0, 0), (0.0, 0.0)), ((0.0, 0, 0), (1.0, 0.0)), ((-1.0, 0, 0), (-0.5, 0)))
+    for cmd, v in same:
+        assert calf(brake, cmd, v) == calf(plain, cmd, v), (cmd, v)  # drives and backward pushes as before
+    assert calf(brake, (0.0, 0, 0), (1.0, 0.0)) == pytest.approx([-0.25] * 4)  # braking a forward roll
+    with pytest.raises(ValueError, match="speed_feedback"):
+        GaitPriorCfg(tilt_forward_brake=0.02)
+
+
 def test_a_backward_law_alone_leaves_the_forward_push_as_without_a_law():
     """amplitude_law_backward without amplitude_law (research/log.md run 107): a backward push
     reads its law, every other push is the prior's own amplitude x ramp, bit for bit."""
@@ -240,7 +263,7 @@ def test_clock_phase_advances_with_policy_steps_and_restarts_with_the_episode(en
     assert env.compute_observations()["policy"][1, sl].tolist() == pytest.approx([0.0, 1.0])
 
 
-@pytest.mark.parametrize("variant", ["plain", "uphill", "law", "back_law", "back_law_adds", "yaw"])
+@pytest.mark.parametrize("variant", ["plain", "uphill", "law", "back_law", "back_law_adds", "yaw", "brake"])
 def test_the_actor_computes_the_same_prior_from_its_observation(env, variant):
     # The actor reads the (noisy) observation, the env its own state: compare without noise.
     env.cfg.gait.uphill_gain, env.cfg.gait.uphill_deadband = (8.0, 0.0) if variant == "uphill" else (0.0, 0.06)
@@ -248,6 +271,8 @@ def test_the_actor_computes_the_same_prior_from_its_observation(env, variant):
     if variant == "law":
         env.cfg.gait.amplitude_law, env.cfg.gait.amplitude_law_backward = LAW, LAW_BACK
         env.cfg.gait.tilt_backward = 0.25
+    if variant == "brake":
+        env.cfg.gait.tilt_forward_brake, env.cfg.gait.brake_blend_speed = 0.02, 0.05
     if variant.startswith("back_law"):
         env.cfg.gait.amplitude_law_backward = LAW_BACK
         env.cfg.gait.amplitude_law_adds = variant.endswith("adds")
@@ -270,6 +295,7 @@ def test_the_actor_computes_the_same_prior_from_its_observation(env, variant):
         env.cfg.gait.amplitude_law, env.cfg.gait.amplitude_law_backward, env.cfg.gait.tilt_backward = [], [], None
         env.cfg.gait.amplitude_law_adds = False
         env.cfg.gait.yaw_feedback, env.cfg.gait.yaw_command_share = 0.0, 1.0
+        env.cfg.gait.tilt_forward_brake, env.cfg.gait.brake_blend_speed = None, 0.2
         env.noise_vec.copy_(noise)
 
 

@@ -116,11 +116,24 @@ class GaitPriorCfg:
     equal to the ramp, changed vy +0.4 and added falls)."""
     tilt_backward: float | None = field(default=None, metadata={"min": 0.0})
     """Tilt for a foot whose push points backwards; None: `tilt`."""
+    tilt_forward_brake: float | None = field(default=None, metadata={"min": 0.0})
+    """Tilt for a foot whose push points forwards while the velocity estimate says the trunk
+    rolls backwards (the push brakes a backward roll), blended in from the forward tilt over
+    the first `brake_blend_speed` of backward speed; None: off. Needs speed feedback (the
+    estimate). The legs brake a backward roll hardest with a nearly flat caster base, a
+    forward roll and every drive with a tilted one (research/scripts/brake_limit.py)."""
+    brake_blend_speed: float = field(default=0.2, metadata={"min": 1e-3})
+    """Backward speed (m/s) of the estimate at which `tilt_forward_brake` takes over fully."""
 
     def backward_tilt(self) -> float:
         return float(self.tilt if self.tilt_backward is None else self.tilt_backward)
 
+    def forward_brake_tilt(self) -> float:
+        return float(self.tilt if self.tilt_forward_brake is None else self.tilt_forward_brake)
+
     def __post_init__(self):
+        if self.tilt_forward_brake is not None and self.speed_feedback <= 0.0:
+            raise ValueError("gait.tilt_forward_brake reads the velocity estimate: it needs gait.speed_feedback > 0")
         for name in ("amplitude_law", "amplitude_law_backward"):
             law = getattr(self, name)
             if not law:
@@ -186,6 +199,8 @@ def _prior(
     yaw_rate: torch.Tensor,
     yaw_feedback: float,
     yaw_command_share: float,
+    tilt_forward_brake: float,
+    brake_blend_speed: float,
 ) -> torch.Tensor:
     # The planar velocity to push for: the command, or with speed feedback its share plus
     # k times the error of the velocity estimate (n, 2); velocity is unused without it.
@@ -203,7 +218,10 @@ def _prior(
     speed = torch.sqrt(vx * vx + vy * vy + 1e-12)
     ramp = (speed / full_speed).clamp(max=1.0)
     ux, uy = vx / speed.clamp(min=1e-6), vy / speed.clamp(min=1e-6)
-    tilt_x = (tilt + (tilt_backward - tilt) * (ux < 0.0).to(ux.dtype)) * ramp * ux
+    # the forward tilt, towards tilt_forward_brake while the estimate rolls backwards (n, 1)
+    braking = (-velocity[:, 0:1] / brake_blend_speed).clamp(0.0, 1.0)
+    tilt_fwd = tilt + (tilt_forward_brake - tilt) * braking
+    tilt_x = torch.where(ux < 0.0, torch.zeros_like(ux) + tilt_backward, tilt_fwd + torch.zeros_like(ux)) * ramp * ux
     tilt_y = tilt * lateral_gain * ramp * uy
     amp = torch.zeros_like(sin_phase) + amplitude  # a float, or one per env (scripts/top_speed.py)
     uphill = torch.zeros_like(amp)  # what the uphill term adds to the amplitude
@@ -276,7 +294,7 @@ def gait_prior(
         gravity, cfg.uphill_gain, cfg.uphill_deadband, cfg.max_amplitude,
         velocity, cfg.speed_feedback, cfg.command_share,
         law_fwd.to(dev), law_back.to(dev), bool(cfg.amplitude_law_adds), cfg.backward_tilt(),
-        yaw_rate, cfg.yaw_feedback, cfg.yaw_command_share,
+        yaw_rate, cfg.yaw_feedback, cfg.yaw_command_share, cfg.forward_brake_tilt(), cfg.brake_blend_speed,
     )  # fmt: skip
 
 
@@ -296,6 +314,7 @@ class GaitPrior(torch.nn.Module):
         self.uphill_deadband = float(c.uphill_deadband)
         self.speed_feedback, self.command_share = float(c.speed_feedback), float(c.command_share)
         self.tilt_backward = c.backward_tilt()
+        self.tilt_forward_brake, self.brake_blend_speed = c.forward_brake_tilt(), float(c.brake_blend_speed)
         self.law_adds = bool(c.amplitude_law_adds)
         law_fwd, law_back = c.law_tensors()
         self.register_buffer("law_fwd", law_fwd, persistent=False)
@@ -330,7 +349,7 @@ class GaitPrior(torch.nn.Module):
             gravity, self.uphill_gain, self.uphill_deadband, self.max_amplitude,
             velocity, self.speed_feedback, self.command_share,
             self.law_fwd, self.law_back, self.law_adds, self.tilt_backward,
-            yaw_rate, self.yaw_feedback, self.yaw_command_share,
+            yaw_rate, self.yaw_feedback, self.yaw_command_share, self.tilt_forward_brake, self.brake_blend_speed,
         )  # fmt: skip
         return offsets / self.action_scale
 
