@@ -218,9 +218,11 @@ def _prior(
     speed = torch.sqrt(vx * vx + vy * vy + 1e-12)
     ramp = (speed / full_speed).clamp(max=1.0)
     ux, uy = vx / speed.clamp(min=1e-6), vy / speed.clamp(min=1e-6)
-    # the forward tilt, towards tilt_forward_brake while the estimate rolls backwards (n, 1)
-    braking = (-velocity[:, 0:1] / brake_blend_speed).clamp(0.0, 1.0)
-    tilt_fwd = tilt + (tilt_forward_brake - tilt) * braking
+    # the forward tilt (n, 1); with a brake tilt, towards it while the estimate rolls backwards
+    tilt_fwd = torch.zeros_like(ux[:, 0:1]) + tilt
+    if speed_feedback > 0.0 and tilt_forward_brake != tilt:
+        braking = (-velocity[:, 0:1] / brake_blend_speed).clamp(0.0, 1.0)
+        tilt_fwd = tilt_fwd + (tilt_forward_brake - tilt) * braking
     tilt_x = torch.where(ux < 0.0, torch.zeros_like(ux) + tilt_backward, tilt_fwd + torch.zeros_like(ux)) * ramp * ux
     tilt_y = tilt * lateral_gain * ramp * uy
     amp = torch.zeros_like(sin_phase) + amplitude  # a float, or one per env (scripts/top_speed.py)
