@@ -221,9 +221,8 @@ def _prior(
     # the forward tilt (n, 1); with a brake tilt, towards it while the estimate rolls backwards
     tilt_fwd = torch.zeros_like(ux[:, 0:1]) + tilt
     if speed_feedback > 0.0 and tilt_forward_brake != tilt:
-        braking = (-velocity[:, 0:1] / brake_blend_speed).clamp(0.0, 1.0)
-        tilt_fwd = tilt_fwd + (tilt_forward_brake - tilt) * braking
-    tilt_x = torch.where(ux < 0.0, torch.zeros_like(ux) + tilt_backward, tilt_fwd + torch.zeros_like(ux)) * ramp * ux
+        tilt_fwd = tilt_fwd + (tilt_forward_brake - tilt) * (-velocity[:, 0:1] / brake_blend_speed).clamp(0.0, 1.0)
+    tilt_x = (tilt_fwd + (tilt_backward - tilt_fwd) * (ux < 0.0).to(ux.dtype)) * ramp * ux
     tilt_y = tilt * lateral_gain * ramp * uy
     amp = torch.zeros_like(sin_phase) + amplitude  # a float, or one per env (scripts/top_speed.py)
     uphill = torch.zeros_like(amp)  # what the uphill term adds to the amplitude
