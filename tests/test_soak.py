@@ -99,6 +99,9 @@ def test_starts_short_form(tmp_path):
         if not r["faults"]:
             assert r["final_state"] == "RUNNING"
             assert r["latency"]["n"] > 50  # stand-up (2 s) and policy commands were answered
+            # the worst state's way in (to the bridge's send, by the command's own stamp) and back
+            assert r["worst_in_ms"] > 0.0 and r["worst_back_ms"] > 0.0
+            assert r["worst_in_ms"] + r["worst_back_ms"] == pytest.approx(r["worst_ms"])
     assert summary["bad_starts"] == len(faulted) == summary["bad_after_a_late_robot_state"], summary
     assert len(faulted) < 2, "both starts latched a fault after a late harness state: rerun on a quieter machine"
     assert "bridge starts" in res.stdout
