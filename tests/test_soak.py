@@ -65,11 +65,11 @@ def test_a_deploy_tool_stops_cleanly_on_sigint_and_sigterm(sig):
 
 @pytest.mark.realtime
 def test_soak_short_form(tmp_path):
-    """One minute of sim robot + bridge (the shipped caster policy) + random operator
+    """Half a minute of sim robot + bridge (the shipped caster policy) + random operator
     commands: the processes survive, the bridge answers the states with policy
     commands, no message is rejected, and the summary has what docs/deploy_measurements.md reports."""
     out = tmp_path / "soak"
-    res = _run_soak(out, "--minutes", "1", "--report-every", "30", timeout=240)
+    res = _run_soak(out, "--minutes", "0.5", "--report-every", "15", timeout=240)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["crashed"] == {}
     assert summary["rejected"] == {}

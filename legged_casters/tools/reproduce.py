@@ -650,7 +650,7 @@ SLOPE_DEG = 3.0
 
 def course_segments(quick: bool) -> tuple[float, list[tuple[float, float]], float]:
     """(start_x, segments, end_x): flat, uphill, flat top, downhill, flat again."""
-    ramp, top, lead, tail = (6.0, 3.0, 4.0, 4.0) if quick else (25.0, 10.0, 10.0, 10.0)
+    ramp, top, lead, tail = (4.0, 2.0, 3.0, 3.0) if quick else (25.0, 10.0, 10.0, 10.0)
     segments = [(ramp, SLOPE_DEG), (top, 0.0), (ramp, -SLOPE_DEG)]
     run = sum(length * math.cos(math.radians(slope)) for length, slope in segments)
     return lead, segments, lead + run + tail
