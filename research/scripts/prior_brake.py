@@ -30,18 +30,42 @@ import sys
 import torch
 
 from legged_casters import registry
+from legged_casters.envs.gait import gait_prior
 from legged_casters.tools import evaluate
 from legged_casters.tools.evaluate import REST_SPEED
 
 TASK = "caster_omni"
 
 
-def prior_policy(env, lengths: list[torch.Tensor]):
-    """The env's prior as the policy; records each step's episode lengths (a drop: a reset)."""
+def prior_policy(env, lengths: list[torch.Tensor], posture_rate: float = 0.0):
+    """The env's prior as the policy; records each step's episode lengths (a drop: a reset).
+    With `posture_rate` > 0 (rad/s) the prior's posture (its offsets with the oscillation
+    left out) moves towards the new one at most that fast, the oscillation on top as it comes:
+    a probe of a prior whose push reverses at a bounded rate (this script keeps the state;
+    the actor has none)."""
+    state: dict[str, torch.Tensor] = {}
 
     def policy(obs=None):
-        lengths.append(env.episode_length_buf.clone())
-        return env.gait_offsets() / env.cfg.control.action_scale
+        length = env.episode_length_buf.clone()
+        offsets = env.gait_offsets()
+        if posture_rate > 0.0:
+            g = env.cfg.gait
+            posture = gait_prior(
+                g, env.commands, env.mode_mask, torch.zeros_like(env.gait_phase), env.projected_gravity,
+                env.base_lin_vel, env.base_ang_vel[:, 2],
+            )  # fmt: skip
+            last = state.get("posture")
+            if last is None:
+                last = posture
+            else:
+                fresh = (length < state["length"]).unsqueeze(1)  # a reset robot starts from its own
+                step = posture_rate * env.dt
+                last = torch.where(fresh, posture, last + (posture - last).clamp(-step, step))
+            state["posture"] = last
+            offsets = offsets - posture + last
+        state["length"] = length
+        lengths.append(length)
+        return offsets / env.cfg.control.action_scale
 
     return policy
 
@@ -52,14 +76,14 @@ def reset_times(lengths: list[torch.Tensor], i: int, dt: float) -> list[float]:
     return [float(k) * dt for k in (steps[1:] < steps[:-1]).nonzero().flatten() + 1]
 
 
-def scenarios(overrides: list[str]) -> list[str]:
+def scenarios(overrides: list[str], posture_rate: float = 0.0) -> list[str]:
     """The stop scenarios under the prior alone; a line per scenario."""
     env_cfg, _ = registry.task_configs(TASK, overrides)
     scen = tuple(s for s in evaluate.STOP if s.kind == "brake")
     env = registry.get_task(TASK).env_class(evaluate.eval_env_cfg(env_cfg, scen))
     lengths: list[torch.Tensor] = []
     try:
-        results = evaluate.run_scenarios(env, prior_policy(env, lengths), scen)
+        results = evaluate.run_scenarios(env, prior_policy(env, lengths, posture_rate), scen)
     finally:
         env.close()
     lines = []
@@ -71,13 +95,13 @@ def scenarios(overrides: list[str]) -> list[str]:
     return lines
 
 
-def from_speed(overrides: list[str], speed: float, seconds: float) -> list[str]:
+def from_speed(overrides: list[str], speed: float, seconds: float, posture_rate: float = 0.0) -> list[str]:
     """The brake alone from +speed and -speed m/s; a table cell per direction."""
     env_cfg, _ = registry.task_configs(TASK, overrides)
     still = evaluate.Scenario("brake alone", ((0.0, (0.0, 0.0, 0.0)),), seconds, 0.0, copies=2)
     env = registry.get_task(TASK).env_class(evaluate.eval_env_cfg(env_cfg, (still,)))
     lengths: list[torch.Tensor] = []
-    policy = prior_policy(env, lengths)
+    policy = prior_policy(env, lengths, posture_rate)
     vx = []
     try:
         env.set_commands(torch.zeros(2, 3))
@@ -115,6 +139,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--vary", action="append", default=[], metavar="KEY=V1,V2", help="values to try, one key at a time")
     ap.add_argument("--from-speed", type=float, default=None, metavar="V", help="the brake alone, from +-V m/s")
     ap.add_argument("--seconds", type=float, default=6.0, help="with --from-speed: length of each rollout")
+    ap.add_argument(
+        "--posture-rate", type=float, default=0.0, metavar="RAD_S", help="bound the prior's posture rate (0: off)"
+    )
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     runs: list[tuple[str, list[str]]] = [("default", [])]
@@ -125,9 +152,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"| setting | from +{args.from_speed:g} m/s | from -{args.from_speed:g} m/s |\n|---|---|---|")
     for name, overrides in runs:
         if args.from_speed is None:
-            print(name, *scenarios([*args.set, *overrides]), sep="\n", flush=True)
+            print(name, *scenarios([*args.set, *overrides], args.posture_rate), sep="\n", flush=True)
         else:
-            cells = from_speed([*args.set, *overrides], args.from_speed, args.seconds)
+            cells = from_speed([*args.set, *overrides], args.from_speed, args.seconds, args.posture_rate)
             print(f"| {name} | " + " | ".join(cells) + " |", flush=True)
     return 0
 
