@@ -25,6 +25,7 @@ path until then, and the times of its falls.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 
 import torch
@@ -37,12 +38,14 @@ from legged_casters.tools.evaluate import REST_SPEED
 TASK = "caster_omni"
 
 
-def prior_policy(env, lengths: list[torch.Tensor], posture_rate: float = 0.0):
+def prior_policy(env, lengths: list[torch.Tensor], posture_rate: float = 0.0, noise: float = 0.0):
     """The env's prior as the policy; records each step's episode lengths (a drop: a reset).
     With `posture_rate` > 0 (rad/s) the prior's posture (its offsets with the oscillation
     left out) moves towards the new one at most that fast, the oscillation on top as it comes:
     a probe of a prior whose push reverses at a bounded rate (this script keeps the state;
-    the actor has none)."""
+    the actor has none). With `noise` > 0 each action gets Gaussian noise of that std (action
+    units, as PPO's exploration adds to the actor's mean in training; seeded)."""
+    gen = torch.Generator().manual_seed(0)
     state: dict[str, torch.Tensor] = {}
 
     def policy(obs=None):
@@ -65,7 +68,10 @@ def prior_policy(env, lengths: list[torch.Tensor], posture_rate: float = 0.0):
             offsets = offsets - posture + last
         state["length"] = length
         lengths.append(length)
-        return offsets / env.cfg.control.action_scale
+        action = offsets / env.cfg.control.action_scale
+        if noise > 0.0:
+            action = action + noise * torch.randn(action.shape, generator=gen).to(action)
+        return action
 
     return policy
 
@@ -76,32 +82,38 @@ def reset_times(lengths: list[torch.Tensor], i: int, dt: float) -> list[float]:
     return [float(k) * dt for k in (steps[1:] < steps[:-1]).nonzero().flatten() + 1]
 
 
-def scenarios(overrides: list[str], posture_rate: float = 0.0) -> list[str]:
-    """The stop scenarios under the prior alone; a line per scenario."""
+def scenarios(overrides: list[str], posture_rate: float = 0.0, noise: float = 0.0, copies: int = 1) -> list[str]:
+    """The stop scenarios under the prior alone, `copies` robots each (their falls joined
+    by " / ", their measures averaged by the evaluation); a line per scenario."""
     env_cfg, _ = registry.task_configs(TASK, overrides)
-    scen = tuple(s for s in evaluate.STOP if s.kind == "brake")
+    scen = tuple(dataclasses.replace(s, copies=copies) for s in evaluate.STOP if s.kind == "brake")
     env = registry.get_task(TASK).env_class(evaluate.eval_env_cfg(env_cfg, scen))
     lengths: list[torch.Tensor] = []
     try:
-        results = evaluate.run_scenarios(env, prior_policy(env, lengths, posture_rate), scen)
+        results = evaluate.run_scenarios(env, prior_policy(env, lengths, posture_rate, noise), scen)
     finally:
         env.close()
     lines = []
     for i, (s, r) in enumerate(zip(scen, results, strict=True)):
         switch = s.segments[1][0]  # the command's change (s)
-        falls = ", ".join(f"{t - switch:+.2f}" for t in reset_times(lengths, i, env.dt)) or "none"
+        falls = " / ".join(
+            ", ".join(f"{t - switch:+.2f}" for t in reset_times(lengths, i * copies + c, env.dt)) or "none"
+            for c in range(copies)
+        )
         measures = ", ".join(f"{k} {v:.2f}" for k, v in r.extra.items())
         lines.append(f"  {s.name:22s} falls at (s from the command's change): {falls}; {measures}")
     return lines
 
 
-def from_speed(overrides: list[str], speed: float, seconds: float, posture_rate: float = 0.0) -> list[str]:
+def from_speed(
+    overrides: list[str], speed: float, seconds: float, posture_rate: float = 0.0, noise: float = 0.0
+) -> list[str]:
     """The brake alone from +speed and -speed m/s; a table cell per direction."""
     env_cfg, _ = registry.task_configs(TASK, overrides)
     still = evaluate.Scenario("brake alone", ((0.0, (0.0, 0.0, 0.0)),), seconds, 0.0, copies=2)
     env = registry.get_task(TASK).env_class(evaluate.eval_env_cfg(env_cfg, (still,)))
     lengths: list[torch.Tensor] = []
-    policy = prior_policy(env, lengths, posture_rate)
+    policy = prior_policy(env, lengths, posture_rate, noise)
     vx = []
     try:
         env.set_commands(torch.zeros(2, 3))
@@ -142,6 +154,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--posture-rate", type=float, default=0.0, metavar="RAD_S", help="bound the prior's posture rate (0: off)"
     )
+    ap.add_argument("--noise", type=float, default=0.0, metavar="STD", help="action noise std (action units)")
+    ap.add_argument("--copies", type=int, default=1, help="robots per stop scenario (with --noise: several draws)")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     runs: list[tuple[str, list[str]]] = [("default", [])]
@@ -152,9 +166,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"| setting | from +{args.from_speed:g} m/s | from -{args.from_speed:g} m/s |\n|---|---|---|")
     for name, overrides in runs:
         if args.from_speed is None:
-            print(name, *scenarios([*args.set, *overrides], args.posture_rate), sep="\n", flush=True)
+            lines = scenarios([*args.set, *overrides], args.posture_rate, args.noise, args.copies)
+            print(name, *lines, sep="\n", flush=True)
         else:
-            cells = from_speed([*args.set, *overrides], args.from_speed, args.seconds, args.posture_rate)
+            cells = from_speed([*args.set, *overrides], args.from_speed, args.seconds, args.posture_rate, args.noise)
             print(f"| {name} | " + " | ".join(cells) + " |", flush=True)
     return 0
 
