@@ -542,6 +542,40 @@ def test_export_carries_the_prior_and_the_bridge_rebuilds_the_clock(tmp_path):
     e.close()
 
 
+def test_the_stop_pose_takes_over_under_a_zero_command_only(tmp_path):
+    """gait.stop_pitch: where the observed command is zero the actor's whole action moves from
+    the last action a share stop_rate towards the stop pose (calves +-pitch front/rear, hips
+    roll x side); under any other command it is the actor's own; the export computes the same;
+    the prior needs the actions slice."""
+    pitch, roll, rate = 0.3, 0.1, 0.2
+    e = registry.make_env(TASK, [*CPU, f"gait.stop_pitch={pitch}", f"gait.stop_roll={roll}"], num_envs=4)
+    actor = export.build_actor(e, registry.get_task(TASK).train_cfg)
+    e.set_commands(torch.tensor([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.6]]))
+    for k in range(3):
+        obs, *_ = e.step(torch.full((4, 12), 0.4 - 0.3 * k))
+    with torch.no_grad():
+        mean = actor(obs)
+        actor.prior.stop_on = False
+        own = actor(obs)
+        actor.prior.stop_on = True
+    scale = e.cfg.control.action_scale
+    pose = torch.tensor([[roll * go2.leg_signs(leg)[1], 0.0, pitch * go2.leg_signs(leg)[0]] for leg in go2.LEGS])
+    last = torch.full((12,), -0.2)  # the last action, as the actions term observes it
+    expect = last + rate * (pose.reshape(12) / scale - last)
+    for i in (0, 2):  # zero commands
+        assert mean[i].tolist() == pytest.approx(expect.tolist(), abs=1e-5)
+    assert torch.equal(mean[[1, 3]], own[[1, 3]])  # a drive and a turn on the spot: the actor's own
+    assert not torch.allclose(own[0], expect)
+    paths = export.export_policy(actor, export.policy_metadata(e, TASK), tmp_path)
+    err = export.check_parity(actor, paths, obs["policy"])
+    assert max(err.values()) < 1e-5, err
+    p = e.actor_prior()
+    del p["slices"]["actions"]
+    with pytest.raises(ValueError, match="actions"):
+        GaitPrior(p["cfg"], p["slices"], p["action_scale"])
+    e.close()
+
+
 def test_the_prior_alone_skates_in_every_direction():
     """No learning: the prior's posture and oscillation move the robot the commanded way."""
     spec = registry.get_task(TASK)

@@ -251,7 +251,9 @@ class CasterOmniEnv(LeggedEnv):
         return {
             "kind": "gait",
             "cfg": dict(vars(self.cfg.gait)),
-            "slices": {k: slices[k] for k in ("commands", "mode_mask", "gait_phase", "projected_gravity", "ang_vel")},
+            "slices": {
+                k: slices[k] for k in ("commands", "mode_mask", "gait_phase", "projected_gravity", "ang_vel", "actions")
+            },
             "action_scale": self.cfg.control.action_scale,
         }
 

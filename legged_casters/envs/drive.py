@@ -39,3 +39,8 @@ class DrivePrior(torch.nn.Module):
         wheels = (commands[:, 0:1] - commands[:, 2:3] * self.wheel_y) * self.gain
         legs = torch.zeros(obs.shape[0], self.num_legs, dtype=obs.dtype, device=obs.device)
         return torch.cat([legs, wheels], dim=1)
+
+    @torch.jit.export
+    def stop(self, obs: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
+        """The actor's mean unchanged: the wheel robot has no stop pose (GaitPrior.stop's call)."""
+        return mean

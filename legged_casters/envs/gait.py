@@ -124,6 +124,19 @@ class GaitPriorCfg:
     forward roll and every drive with a tilted one (research/scripts/brake_limit.py)."""
     brake_blend_speed: float = field(default=0.2, metadata={"min": 1e-3})
     """Backward speed (m/s) of the estimate at which `tilt_forward_brake` takes over fully."""
+    stop_pitch: float | None = None
+    """The stop pose (None: off): under a zero command (vx, vy and wz all 0) the actor's whole
+    action (prior and MLP alike) moves from its last action towards a held pose in which each
+    calf is offset by stop_pitch x the leg's end (front +1, rear -1) rad and each hip by
+    stop_roll x its side (left +1), a share `stop_rate` of the remaining way per control step.
+    The front and rear casters' swivel axes then lean opposite ways, and the pose brakes a
+    roll in either direction and holds a slope without oscillating (research/log.md, "A stop
+    pose"). Reads the `actions` observation term (the last action)."""
+    stop_roll: float = 0.0
+    """Hip offset x side (left +1) of the stop pose, rad."""
+    stop_rate: float = field(default=0.2, metadata={"min": 1e-3, "max": 1.0})
+    """Share of the remaining way from the last action to the stop pose covered each control
+    step (0.2 at 50 Hz: 95 % in 0.28 s)."""
 
     def backward_tilt(self) -> float:
         return float(self.tilt if self.tilt_backward is None else self.tilt_backward)
@@ -334,6 +347,14 @@ class GaitPrior(torch.nn.Module):
         self.mask_start, self.mask_scale = int(slices["mode_mask"][0]), float(slices["mode_mask"][1])
         self.phase_start, self.phase_scale = int(slices["gait_phase"][0]), float(slices["gait_phase"][1])
         self.action_scale = float(action_scale)
+        self.stop_on = c.stop_pitch is not None
+        if self.stop_on and "actions" not in slices:
+            raise ValueError("a gait prior with stop_pitch needs the actions observation slice (the last action)")
+        acts = slices.get("actions", [0, 1.0])
+        self.act_start, self.act_scale = int(acts[0]), float(acts[1])
+        self.stop_rate = float(c.stop_rate)
+        pose = stop_pose(float(c.stop_pitch or 0.0), float(c.stop_roll)) / self.action_scale
+        self.register_buffer("stop_action", pose.reshape(1, 12), persistent=False)
         self.register_buffer("foot_xy", FOOT_XY.clone(), persistent=False)
         self.register_buffer("side", _SIDE.clone(), persistent=False)
         self.register_buffer("front", _FRONT.clone(), persistent=False)
@@ -353,6 +374,23 @@ class GaitPrior(torch.nn.Module):
             yaw_rate, self.yaw_feedback, self.yaw_command_share, self.tilt_forward_brake, self.brake_blend_speed,
         )  # fmt: skip
         return offsets / self.action_scale
+
+    @torch.jit.export
+    def stop(self, obs: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
+        """The actor's mean (n, 12) with the stop pose (GaitPriorCfg.stop_pitch) where the raw
+        observation's command is zero: the last action moved `stop_rate` of the way to the pose."""
+        if not self.stop_on:
+            return mean
+        commands = obs[:, self.cmd_start : self.cmd_start + 3]
+        last = obs[:, self.act_start : self.act_start + 12] / self.act_scale
+        zero = (commands == 0.0).all(dim=1, keepdim=True)
+        return torch.where(zero, last + self.stop_rate * (self.stop_action - last), mean)
+
+
+def stop_pose(pitch: float, roll: float) -> torch.Tensor:
+    """The stop pose's joint-target offsets (12,), rad, go2.ACTUATED_JOINTS order: each hip roll x
+    its side (left +1), each calf pitch x its end (front +1), thighs 0 (GaitPriorCfg.stop_pitch)."""
+    return torch.stack([roll * _SIDE, torch.zeros(4), pitch * _FRONT], dim=-1).reshape(12).float()
 
 
 def advance_phase(phase: torch.Tensor, frequency: float, dt: float) -> torch.Tensor:

@@ -171,13 +171,13 @@ class PriorMLPModel(MLPModel):
 
     def forward(self, obs: TensorDict, masks=None, hidden_state=None, stochastic_output: bool = False) -> torch.Tensor:
         obs = unpad_trajectories(obs, masks) if masks is not None and not self.is_recurrent else obs
-        raw = torch.cat([obs[group] for group in self.obs_groups], dim=-1)
-        if self.mirrored:
-            raw = with_mirror_image(raw, *self._map("observation"))
+        observed = torch.cat([obs[group] for group in self.obs_groups], dim=-1)
+        raw = with_mirror_image(observed, *self._map("observation")) if self.mirrored else observed
         x, estimate = self.mlp_input(self.obs_normalizer(raw))
         mean = self.mlp(x) + self.prior(raw, estimate)
         if self.mirrored:
             mean = symmetric_mean(mean, *self._map("action"))
+        mean = self.prior.stop(observed, mean)  # the stop pose under a zero command, where the prior has one
         if self.distribution is not None:
             if stochastic_output:
                 self.distribution.update(mean)

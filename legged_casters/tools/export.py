@@ -84,7 +84,8 @@ class DeployedPolicy(nn.Module):
                 value = getattr(actor, attr, None) if self.mirrored else None
                 self.register_buffer(attr, value.clone() if value is not None else torch.zeros(0, dtype=dtype))
 
-    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+    def forward(self, observed: torch.Tensor) -> torch.Tensor:
+        obs = observed
         if self.mirrored:  # the observations, then their mirror images (PriorMLPModel's mirrored actor)
             obs = with_mirror_image(obs, self.observation_mirror_index, self.observation_mirror_sign)
         x = (obs - self.obs_mean) / self.obs_denom
@@ -99,6 +100,8 @@ class DeployedPolicy(nn.Module):
             mean = mean + self.prior(obs, estimate)
         if self.mirrored:
             mean = symmetric_mean(mean, self.action_mirror_index, self.action_mirror_sign)
+        if self.prior is not None:  # the stop pose under a zero command, where the prior has one
+            mean = self.prior.stop(observed, mean)
         return self.head(mean)
 
     @torch.jit.export
