@@ -32,6 +32,7 @@ import torch
 
 from legged_casters import registry
 from legged_casters.envs.gait import gait_prior
+from legged_casters.robot import go2
 from legged_casters.tools import evaluate
 from legged_casters.tools.evaluate import REST_SPEED
 
@@ -105,15 +106,41 @@ def scenarios(overrides: list[str], posture_rate: float = 0.0, noise: float = 0.
     return lines
 
 
+def pose_policy(env, lengths: list[torch.Tensor], roll: float, pitch: float, noise: float = 0.0):
+    """A held pose instead of the prior: each hip offset by roll x its side (left +1), each calf
+    by pitch x its end (front +1), rad; (0, 0) is the nominal pose (coasting). `noise` as in
+    prior_policy."""
+    gen = torch.Generator().manual_seed(0)
+    offsets = torch.zeros(env.num_envs, 4, 3)
+    offsets[:, :, 0] = roll * torch.tensor([go2.leg_signs(leg)[1] for leg in go2.LEGS])
+    offsets[:, :, 2] = pitch * torch.tensor([go2.leg_signs(leg)[0] for leg in go2.LEGS])
+    action = offsets.reshape(env.num_envs, 12) / env.cfg.control.action_scale
+
+    def policy(obs=None):
+        lengths.append(env.episode_length_buf.clone())
+        return action + noise * torch.randn(action.shape, generator=gen) if noise > 0.0 else action
+
+    return policy
+
+
 def from_speed(
-    overrides: list[str], speed: float, seconds: float, posture_rate: float = 0.0, noise: float = 0.0
+    overrides: list[str],
+    speed: float,
+    seconds: float,
+    posture_rate: float = 0.0,
+    noise: float = 0.0,
+    pose: tuple[float, float] | None = None,
 ) -> list[str]:
-    """The brake alone from +speed and -speed m/s; a table cell per direction."""
+    """The brake alone from +speed and -speed m/s; a table cell per direction. With `pose`
+    (roll, pitch) a held pose brakes instead of the prior (pose_policy)."""
     env_cfg, _ = registry.task_configs(TASK, overrides)
     still = evaluate.Scenario("brake alone", ((0.0, (0.0, 0.0, 0.0)),), seconds, 0.0, copies=2)
     env = registry.get_task(TASK).env_class(evaluate.eval_env_cfg(env_cfg, (still,)))
     lengths: list[torch.Tensor] = []
-    policy = prior_policy(env, lengths, posture_rate, noise)
+    if pose is None:
+        policy = prior_policy(env, lengths, posture_rate, noise)
+    else:  # a held pose brakes instead
+        policy = pose_policy(env, lengths, *pose, noise)
     vx = []
     try:
         env.set_commands(torch.zeros(2, 3))
@@ -156,6 +183,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--noise", type=float, default=0.0, metavar="STD", help="action noise std (action units)")
     ap.add_argument("--copies", type=int, default=1, help="robots per stop scenario (with --noise: several draws)")
+    ap.add_argument(
+        "--pose",
+        action="append",
+        default=[],
+        metavar="ROLL,PITCH",
+        help="with --from-speed: also each held pose (hip roll x side, calf pitch x end, rad) instead of the prior",
+    )
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     runs: list[tuple[str, list[str]]] = [("default", [])]
@@ -171,6 +205,11 @@ def main(argv: list[str] | None = None) -> int:
         else:
             cells = from_speed([*args.set, *overrides], args.from_speed, args.seconds, args.posture_rate, args.noise)
             print(f"| {name} | " + " | ".join(cells) + " |", flush=True)
+    if args.from_speed is not None:
+        for pose in args.pose:
+            roll, pitch = (float(x) for x in pose.split(","))
+            cells = from_speed(args.set, args.from_speed, args.seconds, noise=args.noise, pose=(roll, pitch))
+            print(f"| held pose roll {roll:g}, pitch {pitch:g} | " + " | ".join(cells) + " |", flush=True)
     return 0
 
 
