@@ -548,10 +548,6 @@ def caster_omni_sym_train_cfg() -> TrainCfg:
     return cfg
 
 
-STOP_PITCH = 0.4
-"""rad: the stop pose's calf offsets (GaitPriorCfg.stop_pitch) of the shipped caster policy; 0.2-0.4
-brought it to rest from +-1.5 and +-2.0 m/s within 2 s (research/log.md, "A stop pose")."""
-
 BACKWARD_AMPLITUDE_LAW = [[0.0, 0.0], [0.25, 0.2], [0.5, 0.25], [1.0, 0.35]]
 """The prior's amplitude for a backward push against |commanded vx| (GaitPriorCfg.amplitude_law_backward)."""
 
@@ -566,9 +562,8 @@ def caster_omni_train_cfg() -> TrainCfg:
     """`caster_omni`: the shipped policy's recipe as one run. caster_omni_sym's training
     with seed 3 and three stages: after iteration 500 the prior's backward amplitude law,
     after 800 actions observed 0-20 ms late and the action-rate penalty x5, after 950 a
-    checkpoint every 10 iterations and the stop pose under a zero command (gait.stop_pitch);
-    after 1000 iterations the run ranks its newest five checkpoints (960-1000) by the full
-    evaluation and selects one."""
+    checkpoint every 10 iterations; after 1000 iterations the run ranks its newest five
+    checkpoints (960-1000) by the full evaluation and selects one."""
     cfg = caster_omni_sym_train_cfg()
     cfg.experiment_name = "caster_omni"
     cfg.seed = 3
@@ -577,6 +572,6 @@ def caster_omni_train_cfg() -> TrainCfg:
     cfg.stages = {
         500: {"gait.amplitude_law_backward": BACKWARD_AMPLITUDE_LAW},
         800: {"domain_rand.observation_delay_range": [0.0, 0.02], "rewards.scales.action_rate": -0.05},
-        950: {"train.save_interval": 10, "gait.stop_pitch": STOP_PITCH},
+        950: {"train.save_interval": 10},
     }
     return cfg

@@ -130,8 +130,9 @@ class GaitPriorCfg:
     calf is offset by stop_pitch x the leg's end (front +1, rear -1) rad and each hip by
     stop_roll x its side (left +1), a share `stop_rate` of the remaining way per control step.
     The front and rear casters' swivel axes then lean opposite ways, and the pose brakes a
-    roll in either direction and holds a slope without oscillating (research/log.md, "A stop
-    pose"). Reads the `actions` observation term (the last action)."""
+    roll in either direction and holds a slope without oscillating; but a policy trained
+    without it falls in a third of its starts out of it (research/log.md, "A stop pose").
+    Reads the `actions` observation term (the last action)."""
     stop_roll: float = 0.0
     """Hip offset x side (left +1) of the stop pose, rad."""
     stop_rate: float = field(default=0.2, metadata={"min": 1e-3, "max": 1.0})
