@@ -16,6 +16,11 @@ stop` (the prior drives for 6 s, then the command changes): each scenario's meas
 times of its falls, counted from the command's change (negative: before it, while the prior
 drives; the "rest" time of a robot that fell counts the reset robot).
 
+`--noise STD --copies N`: Gaussian noise on every action (as PPO's exploration) and N robots
+per stop scenario; `--posture-rate R`: the prior's posture follows the command at most R
+rad/s (a stateful probe). `--from-speed V --pose=ROLL,PITCH` (repeatable): also each held pose
+(hip roll x side, calf pitch x end) in place of the prior.
+
 `--from-speed V`: the brake alone. Two robots start rolling at +V and -V m/s in the nominal
 pose under a zero command (no drive before it, so a setting changes only the brake); per
 direction, when the trunk is at rest for good (|vx| below the stop checks' rest speed), the
