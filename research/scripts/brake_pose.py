@@ -22,17 +22,10 @@ from pathlib import Path
 import torch
 
 from legged_casters import registry
-from legged_casters.robot import go2
+from legged_casters.envs.gait import stop_pose
 from legged_casters.tools import evaluate
 
 POLICY = Path(__file__).resolve().parents[2] / "resources" / "policies" / "caster_omni"
-
-
-def pose_action(n: int, roll: float, pitch: float, action_scale: float) -> torch.Tensor:
-    offsets = torch.zeros(n, 4, 3)
-    offsets[:, :, 0] = roll * torch.tensor([go2.leg_signs(leg)[1] for leg in go2.LEGS])
-    offsets[:, :, 2] = pitch * torch.tensor([go2.leg_signs(leg)[0] for leg in go2.LEGS])
-    return offsets.reshape(n, 12) / action_scale
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -47,7 +40,7 @@ def main(argv: list[str] | None = None) -> int:
     task, _, env_cfg, policy, _, _ = evaluate.load_exported(args.policy, None)
     scen = evaluate.STOP
     env = registry.get_task(task).env_class(evaluate.eval_env_cfg(env_cfg, scen))
-    pose = pose_action(env.num_envs, args.roll, args.pitch, env.cfg.control.action_scale)
+    pose = stop_pose(args.pitch, args.roll) / env.cfg.control.action_scale  # (12,): broadcast over the robots
     since = torch.zeros(env.num_envs)  # s since the command became zero
 
     def braked(obs):

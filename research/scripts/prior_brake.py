@@ -36,8 +36,7 @@ import sys
 import torch
 
 from legged_casters import registry
-from legged_casters.envs.gait import gait_prior
-from legged_casters.robot import go2
+from legged_casters.envs.gait import gait_prior, stop_pose
 from legged_casters.tools import evaluate
 from legged_casters.tools.evaluate import REST_SPEED
 
@@ -74,12 +73,14 @@ def prior_policy(env, lengths: list[torch.Tensor], posture_rate: float = 0.0, no
             offsets = offsets - posture + last
         state["length"] = length
         lengths.append(length)
-        action = offsets / env.cfg.control.action_scale
-        if noise > 0.0:
-            action = action + noise * torch.randn(action.shape, generator=gen).to(action)
-        return action
+        return with_noise(offsets / env.cfg.control.action_scale, noise, gen)
 
     return policy
+
+
+def with_noise(action: torch.Tensor, noise: float, gen: torch.Generator) -> torch.Tensor:
+    """`action` plus Gaussian noise of std `noise` (action units; none at 0), drawn from `gen`."""
+    return action + noise * torch.randn(action.shape, generator=gen).to(action) if noise > 0.0 else action
 
 
 def reset_times(lengths: list[torch.Tensor], i: int, dt: float) -> list[float]:
@@ -116,14 +117,11 @@ def pose_policy(env, lengths: list[torch.Tensor], roll: float, pitch: float, noi
     by pitch x its end (front +1), rad; (0, 0) is the nominal pose (coasting). `noise` as in
     prior_policy."""
     gen = torch.Generator().manual_seed(0)
-    offsets = torch.zeros(env.num_envs, 4, 3)
-    offsets[:, :, 0] = roll * torch.tensor([go2.leg_signs(leg)[1] for leg in go2.LEGS])
-    offsets[:, :, 2] = pitch * torch.tensor([go2.leg_signs(leg)[0] for leg in go2.LEGS])
-    action = offsets.reshape(env.num_envs, 12) / env.cfg.control.action_scale
+    action = (stop_pose(pitch, roll) / env.cfg.control.action_scale).expand(env.num_envs, 12)
 
     def policy(obs=None):
         lengths.append(env.episode_length_buf.clone())
-        return action + noise * torch.randn(action.shape, generator=gen) if noise > 0.0 else action
+        return with_noise(action, noise, gen)
 
     return policy
 
