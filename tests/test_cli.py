@@ -875,6 +875,31 @@ def test_brake_measures_time_and_path_to_rest_and_to_the_zero_crossing():
     assert [ok for _, ok, _ in checks] == [False, False, False]  # 1.6 m > 1.5 m; 6 deg > 5 deg; a fall on 5 deg
 
 
+def test_a_start_after_a_stop_passes_on_its_own_axis_without_a_fall():
+    from legged_casters.tools import evaluate
+
+    s = evaluate._go_again(1.0, (0.0, 0.4, 0.0))
+    start = 4.0 + evaluate.GO_STOPPED_S
+    assert [t for t, _ in s.segments] == [0.0, 4.0, start] and s.command(start - 0.01) == (0.0, 0.0, 0.0)
+    assert (s.measure_from, s.duration) == (start + evaluate.GO_WINDOW_S[0], start + evaluate.GO_WINDOW_S[1])
+    assert evaluate._go_again(0.0, (0.5, 0.0, 0.0)).segments == ((0.0, (0.0, 0.0, 0.0)), (1.0, (0.5, 0.0, 0.0)))
+
+    def go(cmd, err, falls=0):
+        errors = dict(zip(("vx", "vy", "wz"), err, strict=True))
+        return evaluate.ScenarioResult("go", "go", cmd, err=errors, falls=falls)
+
+    checks = evaluate.verdict([
+        go((0.0, 0.4, 0.0), (0.0, 0.1, 0.3)),  # vy within its 0.15: the wz error is not this start's axis
+        go((0.0, 0.4, 0.0), (0.0, 0.1, 0.0), falls=1),
+        go((0.0, 0.0, 0.8), (0.0, 0.0, 0.3)),  # wz over its 0.25
+        go((-0.5, 0.0, 0.0), (0.1, 0.0, 0.0)),
+    ])  # fmt: skip
+    assert [ok for _, ok, _ in checks] == [True, False, False, True]
+    assert "|vy error| <= 0.15" in checks[0][0] and "1 fall" in checks[1][2]
+    wheel = evaluate.verdict([go((0.0, 0.0, 0.8), (0.0, 0.0, 0.22))], "go2_wheel_flat")
+    assert not wheel[0][1]  # the wheel task's own wz bar (0.2)
+
+
 def test_a_selected_checkpoint_is_what_a_run_loads_by_default(tmp_path):
     from legged_casters.tools import evaluate
 

@@ -98,6 +98,31 @@ def _slope(name: str, cmd: float, deg: float, downhill_ahead: bool, duration: fl
                   slope_deg=deg, downhill_yaw=0.0 if downhill_ahead else math.pi)  # fmt: skip
 
 
+GO_STOPPED_S = 2.0
+"""s: the go-again scenarios hold the zero command this long before the new one (the stop bar)."""
+GO_WINDOW_S = (3.0, 6.0)
+"""s after the new command: the window over which a go-again scenario's error is measured."""
+
+
+def _short(value: float) -> str:
+    """+0.5, +0.25, +2.0: two decimals where the second one says something."""
+    text = f"{value:+.2f}"
+    return text[:-1] if text.endswith("0") else text
+
+
+def _go_again(before: float, after: tuple[float, float, float]) -> Scenario:
+    """Move at vx `before` for 4 s (stand 1 s when 0), a zero command for GO_STOPPED_S, then
+    `after`: a start out of whatever a stop left (pose, casters, speed)."""
+    move = 4.0 if before else 1.0
+    start = move + (GO_STOPPED_S if before else 0.0)
+    axis = next(k for k, c in zip(("vx", "vy", "wz"), after, strict=True) if c)
+    origin = f"a stop from {_short(before)}" if before else "a stand"
+    stop = ((move, (0.0, 0.0, 0.0)),) if before else ()
+    return Scenario(f"go after {origin}: {axis} {_short(sum(after))}",
+                    ((0.0, (before, 0.0, 0.0)), *stop, (start, after)),
+                    start + GO_WINDOW_S[1], start + GO_WINDOW_S[0], kind="go")  # fmt: skip
+
+
 STOP = (
     _brake("stop from +1.5", 1.5, 0.0),
     _brake("stop from -1.5", -1.5, 0.0),
@@ -114,11 +139,18 @@ STOP = (
     _slope("hold 5deg", 0.0, 5.0, True, duration=6.0),
     _slope("vx +0.5 down 5deg", 0.5, 5.0, True),
     _slope("vx +0.5 up 5deg", 0.5, 5.0, False),
+    _go_again(0.0, (0.5, 0.0, 0.0)),
+    _go_again(1.0, (1.0, 0.0, 0.0)),
+    _go_again(1.0, (-0.5, 0.0, 0.0)),
+    _go_again(1.0, (0.0, 0.4, 0.0)),
+    _go_again(1.0, (0.0, 0.0, 0.8)),
+    _go_again(-1.0, (0.5, 0.0, 0.0)),
 )
-"""Stopping and slopes: a zero command at speed (rest = |vx| below REST_SPEED from then to
-the end), reversals at speed (time until vx crosses zero), zero commands held on the flat
-and on 3 and 5 deg of ground tilted ahead of or behind the robot, and +-0.5 m/s down and up
-those slopes (a command with the sign of the downhill direction goes down)."""
+"""Stopping, starting again and slopes: a zero command at speed (rest = |vx| below REST_SPEED
+from then to the end), reversals at speed (time until vx crosses zero), zero commands held on
+the flat and on 3 and 5 deg of ground tilted ahead of or behind the robot, +-0.5 m/s down and
+up those slopes (a command with the sign of the downhill direction goes down), and starts
+after a stand and after a stop (error over GO_WINDOW_S after the new command)."""
 REST_SPEED = 0.1
 """m/s: a stopped robot's |vx| stays below this."""
 STOP_BARS = {"rest_s": 2.0, "rest_m": 1.5, "cross_s": 2.0}
@@ -665,6 +697,12 @@ def verdict(results: list[ScenarioResult], task: str | None = None) -> list[tupl
         elif r.kind == "slope" and r.slope_deg <= 3.0:
             ok = r.err["vx"] <= SLOPE_VX_ERROR and not r.falls
             checks.append((f"{r.name}: |vx error| <= {SLOPE_VX_ERROR}", ok, f"{r.err['vx']:.3f}"))
+        elif r.kind == "go":
+            axis = next(k for k, c in zip(("vx", "vy", "wz"), r.cmd, strict=True) if c)
+            bar = bars.get(axis, min(b for a, b in THRESHOLDS.values() if a == axis))
+            ok = r.err[axis] <= bar and not r.falls
+            measured = f"{r.err[axis]:.3f}" + (f", {r.falls} fall" if r.falls else "")
+            checks.append((f"{r.name}: |{axis} error| <= {bar}, no fall", ok, measured))
     steep = [r for r in results if r.kind in ("hold", "slope") and r.slope_deg > 3.0]
     if steep:
         n = sum(r.falls for r in steep)
@@ -685,12 +723,6 @@ def verdict(results: list[ScenarioResult], task: str | None = None) -> list[tupl
         )
         checks.append((f"{mode}: |vx error| <= {MODE_VX_ERROR}", r.err["vx"] <= MODE_VX_ERROR, f"{r.err['vx']:.3f}"))
     return checks
-
-
-def _short(value: float) -> str:
-    """+0.5, +0.25, +2.0: two decimals where the second one says something."""
-    text = f"{value:+.2f}"
-    return text[:-1] if text.endswith("0") else text
 
 
 def format_table(results: list[ScenarioResult]) -> str:
