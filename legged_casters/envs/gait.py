@@ -388,10 +388,11 @@ class GaitPrior(torch.nn.Module):
         return torch.where(zero, last + self.stop_rate * (self.stop_action - last), mean)
 
 
-def stop_pose(pitch: float, roll: float) -> torch.Tensor:
+def stop_pose(pitch: float, roll: float, thigh: float = 0.0) -> torch.Tensor:
     """The stop pose's joint-target offsets (12,), rad, go2.ACTUATED_JOINTS order: each hip roll x
-    its side (left +1), each calf pitch x its end (front +1), thighs 0 (GaitPriorCfg.stop_pitch)."""
-    return torch.stack([roll * _SIDE, torch.zeros(4), pitch * _FRONT], dim=-1).reshape(12).float()
+    its side (left +1), each thigh `thigh` and each calf `pitch` x its end (front +1)
+    (GaitPriorCfg.stop_pitch)."""
+    return torch.stack([roll * _SIDE, thigh * _FRONT, pitch * _FRONT], dim=-1).reshape(12).float()
 
 
 def advance_phase(phase: torch.Tensor, frequency: float, dt: float) -> torch.Tensor:

@@ -112,12 +112,12 @@ def scenarios(overrides: list[str], posture_rate: float = 0.0, noise: float = 0.
     return lines
 
 
-def pose_policy(env, lengths: list[torch.Tensor], roll: float, pitch: float, noise: float = 0.0):
+def pose_policy(env, lengths: list[torch.Tensor], roll: float, pitch: float, thigh: float = 0.0, noise: float = 0.0):
     """A held pose instead of the prior: each hip offset by roll x its side (left +1), each calf
     by pitch x its end (front +1), rad; (0, 0) is the nominal pose (coasting). `noise` as in
     prior_policy."""
     gen = torch.Generator().manual_seed(0)
-    action = (stop_pose(pitch, roll) / env.cfg.control.action_scale).expand(env.num_envs, 12)
+    action = (stop_pose(pitch, roll, thigh) / env.cfg.control.action_scale).expand(env.num_envs, 12)
 
     def policy(obs=None):
         lengths.append(env.episode_length_buf.clone())
@@ -132,7 +132,7 @@ def from_speed(
     seconds: float,
     posture_rate: float = 0.0,
     noise: float = 0.0,
-    pose: tuple[float, float] | None = None,
+    pose: tuple[float, float, float] | None = None,
 ) -> list[str]:
     """The brake alone from +speed and -speed m/s; a table cell per direction. With `pose`
     (roll, pitch) a held pose brakes instead of the prior (pose_policy)."""
@@ -143,8 +143,8 @@ def from_speed(
     if pose is None:
         policy = prior_policy(env, lengths, posture_rate, noise)
     else:  # a held pose brakes instead
-        policy = pose_policy(env, lengths, *pose, noise)
-    vx = []
+        policy = pose_policy(env, lengths, *pose, noise=noise)
+    vx, pitch = [], []
     try:
         env.set_commands(torch.zeros(2, 3))
         env.set_mode("four_wheel")
@@ -156,10 +156,11 @@ def from_speed(
         for _ in range(int(round(seconds / env.dt))):
             env.step(policy())
             vx.append(env.base_lin_vel[:, 0].clone())
+            pitch.append(torch.rad2deg(torch.asin(env.ground_gravity[:, 0].clamp(-1, 1))))
         lengths.append(env.episode_length_buf.clone())
     finally:
         env.close()
-    v = torch.stack(vx)
+    v, tilt = torch.stack(vx), torch.stack(pitch)
     cells = []
     for i in (0, 1):
         falls = reset_times(lengths, i, env.dt)
@@ -171,7 +172,10 @@ def from_speed(
         if k >= len(v):
             cells.append(f"not at rest ({float(v[-1, i]):+.2f} m/s at the end)")
         else:
-            cells.append(f"{k * env.dt:.2f} s, {float(v[:k, i].abs().sum()) * env.dt:.2f} m")
+            cells.append(
+                f"{k * env.dt:.2f} s, {float(v[:k, i].abs().sum()) * env.dt:.2f} m, "
+                f"trunk pitch {float(tilt[-int(round(1.0 / env.dt)) :, i].mean()):+.0f} deg"
+            )
     return cells
 
 
@@ -190,8 +194,9 @@ def main(argv: list[str] | None = None) -> int:
         "--pose",
         action="append",
         default=[],
-        metavar="ROLL,PITCH",
-        help="with --from-speed: also each held pose (hip roll x side, calf pitch x end, rad) instead of the prior",
+        metavar="ROLL,PITCH[,THIGH]",
+        help="with --from-speed: also each held pose (hip roll x side, calf pitch and thigh x end, rad) "
+        "instead of the prior",
     )
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
@@ -210,9 +215,10 @@ def main(argv: list[str] | None = None) -> int:
             print(f"| {name} | " + " | ".join(cells) + " |", flush=True)
     if args.from_speed is not None:
         for pose in args.pose:
-            roll, pitch = (float(x) for x in pose.split(","))
-            cells = from_speed(args.set, args.from_speed, args.seconds, noise=args.noise, pose=(roll, pitch))
-            print(f"| held pose roll {roll:g}, pitch {pitch:g} | " + " | ".join(cells) + " |", flush=True)
+            roll, pitch, thigh = ([float(x) for x in pose.split(",")] + [0.0])[:3]
+            cells = from_speed(args.set, args.from_speed, args.seconds, noise=args.noise, pose=(roll, pitch, thigh))
+            name = f"held pose roll {roll:g}, pitch {pitch:g}" + (f", thigh {thigh:g}" if thigh else "")
+            print(f"| {name} | " + " | ".join(cells) + " |", flush=True)
     return 0
 
 
