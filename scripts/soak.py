@@ -27,8 +27,10 @@ do not move, so the fold stand-up would only take longer) and ``--run-seconds`` 
 policy. Counted: starts whose bridge latched a fault; per start, the worst state ->
 command latency (from this process's put of the state to the arrival of the command
 that answers it) and when it came, after the first command and after the bridge's first
-status with step statistics (rate and jitter, from the stand-up's second step on); and over all starts
-the steady-state latency (states put 0.5 s or more after a start's first command).
+status with step statistics (rate and jitter, from the stand-up's second step on), and where
+it went (the state's transport to the bridge, the bridge's step, the way back: each bridge
+runs with ``--trace``); and over all starts the steady-state latency (states put 0.5 s or
+more after a start's first command).
 
 Both write their logs (each process's output, a JSON summary) to ``--out``
 (default: logs/soak/<date>_<mode>/).
@@ -376,14 +378,16 @@ def print_summary(r: dict) -> None:
         print(f"| RSS {name} | {r['rss_mb'][name]:.1f} MB, growth {g:+.2f} MB/h |")
 
 
-def start_worst(sent, answered, first_cmd, first_rate, steady: list[float], sent_back=None) -> dict:
+def start_worst(sent, answered, first_cmd, first_rate, steady: list[float], sent_back=None, arrived=None) -> dict:
     """One start's worst state -> command latency (put of the state to arrival of its
     answer) and when the state went out, relative to the first command and to the first
     status with step statistics (rate, jitter: the stand-up's second step or later);
     latencies 0.5 s or more after the first command go to `steady`. With `sent_back`
     (state seq -> the answering command's own stamp, the bridge's send on the same
     monotonic clock) the worst is split into the way in (put -> the bridge's send: the
-    state's transport and the bridge's step) and the way back (send -> arrival)."""
+    state's transport and the bridge's step) and the way back (send -> arrival); with
+    `arrived` as well (state seq -> its arrival at the bridge, the bridge's --trace) the way in
+    splits further into the state's transport (put -> arrival) and the bridge (arrival -> send)."""
     worst, worst_at, worst_seq = math.nan, math.nan, None
     for seq, got in answered.items():
         put = sent.get(seq)
@@ -396,14 +400,34 @@ def start_worst(sent, answered, first_cmd, first_rate, steady: list[float], sent
             worst, worst_at, worst_seq = lat, put, seq
     nan = math.nan
     back = (sent_back or {}).get(worst_seq)
+    came = (arrived or {}).get(worst_seq)
     return {
         "worst_ms": worst * 1e3,
         "worst_in_ms": (back - worst_at) * 1e3 if back is not None else nan,
+        "worst_transport_ms": (came - worst_at) * 1e3 if came is not None else nan,
+        "worst_bridge_ms": (back - came) * 1e3 if came is not None and back is not None else nan,
         "worst_back_ms": (worst_at + worst - back) * 1e3 if back is not None else nan,
         "worst_after_first_cmd_s": worst_at - first_cmd if first_cmd is not None else nan,
         "worst_after_rate_status_s": worst_at - first_rate if first_rate is not None else nan,
         "answered": len(answered),
     }
+
+
+def read_trace(path: Path) -> dict[int, float]:
+    """A bridge's --trace CSV -> state seq -> its arrival at the bridge (s, CLOCK_MONOTONIC);
+    empty when the bridge wrote none (it died)."""
+    if not path.is_file():
+        return {}
+    rows = path.read_text().splitlines()[1:]
+    return {int(seq): int(arrival) / 1e9 for seq, arrival, _ in (row.split(",") for row in rows)}
+
+
+def split(r: dict) -> str:
+    """'in X: transport T + bridge B, back Y' of a start's worst latency (ms)."""
+    return (
+        f"in {r['worst_in_ms']:.2f}: transport {r['worst_transport_ms']:.2f} + bridge {r['worst_bridge_ms']:.2f}, "
+        f"back {r['worst_back_ms']:.2f}"
+    )
 
 
 def starts(args: argparse.Namespace, out: Path) -> int:
@@ -424,6 +448,7 @@ def starts(args: argparse.Namespace, out: Path) -> int:
     steady: list[float] = []  # latencies 0.5 s or more after a start's first command, all starts
     state_dt = 1.0 / args.state_hz if args.state_hz else dt
     bridge_log = open(out / "bridges.log", "w")  # noqa: SIM115
+    trace = out / "bridge_trace.csv"  # each start's bridge writes its commands' state arrivals here at its exit
     try:
         for i in range(args.starts):
             mon = Monitor()
@@ -431,7 +456,7 @@ def starts(args: argparse.Namespace, out: Path) -> int:
             cmd = module_cmd(
                 "bridge", "--policy", str(args.policy), "--connect", endpoint, "--namespace", ns,
                 "--standup", "linear", "--standup-time", f"{args.standup_time:g}", "--operator-timeout", "0",
-                "--summary-every", "0", *rt,
+                "--summary-every", "0", "--trace", str(trace), *rt,
             )  # fmt: skip
             bridge_log.write(f"--- start {i}\n")
             bridge_log.flush()
@@ -476,11 +501,12 @@ def starts(args: argparse.Namespace, out: Path) -> int:
             with mon.lock:
                 answered, sent_back = dict(mon.answered), dict(mon.sent_back)
                 first_cmd, first_rate = mon.first_cmd, mon.first_rate_status
-            worst = start_worst(sent, answered, first_cmd, first_rate, steady, sent_back)
             mon.judge(older_than=0.0)
             for s in subs:
                 s.undeclare()
+            trace.unlink(missing_ok=True)
             stop_processes({"bridge": proc})
+            worst = start_worst(sent, answered, first_cmd, first_rate, steady, sent_back, read_trace(trace))
             lat = percentiles_ms(mon.latency)
             res = {
                 "start": i,
@@ -504,8 +530,8 @@ def starts(args: argparse.Namespace, out: Path) -> int:
                     f"start {i + 1}/{args.starts}: bridge ready in {ready:.2f} s, {res['final_state']}, faults "
                     f"{res['faults'] or 'none'}"
                     + (f" {fault_at:.2f} s after the first state" if fault_at is not None else "")
-                    + f", worst state->command {res['worst_ms']:.2f} ms (in {res['worst_in_ms']:.2f}, back "
-                    f"{res['worst_back_ms']:.2f}) {res['worst_after_first_cmd_s']:.3f} s after "
+                    + f", worst state->command {res['worst_ms']:.2f} ms ({split(res)}) "
+                    f"{res['worst_after_first_cmd_s']:.3f} s after "
                     f"the first command ({res['worst_after_rate_status_s']:+.3f} s from the first status with step "
                     "statistics)" + f", states published up to "
                     f"{late * 1e3:.1f} ms late; so far {n_bad} of {i + 1} bad",
@@ -541,9 +567,9 @@ def starts(args: argparse.Namespace, out: Path) -> int:
         "steady": percentiles_ms(steady),
         "steady_p99_ms": steady_p99,
         "starts_within_2ms_of_steady_p99": sum(1 for m in maxes if m <= steady_p99 + 2.0),
-        # the others' worst split: put -> the bridge's send of the answer, and send -> arrival here
-        "outside_2ms_in_back_ms": [
-            [r["worst_ms"], r["worst_in_ms"], r["worst_back_ms"]]
+        # the others' worst split: put -> the state's arrival at the bridge -> its send of the answer -> arrival here
+        "outside_2ms": [
+            {k: r[k] for k in ("worst_ms", "worst_in_ms", "worst_transport_ms", "worst_bridge_ms", "worst_back_ms")}
             for r in results
             if math.isfinite(r["worst_ms"]) and r["worst_ms"] > steady_p99 + 2.0
         ],
@@ -560,7 +586,7 @@ def starts(args: argparse.Namespace, out: Path) -> int:
         f"p99 {summary['p99_of_start_max_ms']:.2f} ms, max {summary['worst_latency_ms']:.2f} ms, within 2 ms of the "
         f"steady p99 in {summary['starts_within_2ms_of_steady_p99']} of {len(maxes)}, at the first status with step "
         f"statistics (put 20 ms before to 2 ms after its arrival) in {near_status}; "
-        + "".join(f"outside: {w:.2f} ms (in {i:.2f}, back {b:.2f}); " for w, i, b in summary["outside_2ms_in_back_ms"])
+        + "".join(f"outside: {r['worst_ms']:.2f} ms ({split(r)}); " for r in summary["outside_2ms"])
         + f"details in {out / 'starts.json'}",
         flush=True,
     )

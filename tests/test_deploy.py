@@ -654,6 +654,38 @@ def test_policy_steps_on_the_robot_clock_with_a_fast_state_stream(tmp_path, real
     assert abs(np.mean(np.diff(ts)) - DT) < 0.001
 
 
+def test_the_trace_stamps_each_answered_states_arrival_before_its_answer(tmp_path, realtime):
+    """--trace: for every command that answers a state, that state's seq, its arrival and
+    the command's own send stamp, on the same monotonic clock; damping on the bridge's
+    timer (no state answered) is not traced."""
+    rec = Recorder()
+    b = _bridge(tmp_path, rec, standup_time=0.1, max_state_age=0.05)
+    b.start_trace(steps=1000)
+    b.start()
+    robot = FakeRobot(b.on_state, period=0.002)
+    try:
+        assert wait_for(lambda: b.policy_steps >= 10, 3.0)
+    finally:
+        robot.stop()
+    assert wait_for(lambda: b.state is P.BridgeState.DAMPING, 1.0)  # stale: damping on the bridge's own timer
+    time.sleep(3 * DT)
+    b.stop()
+    path = tmp_path / "trace.csv"
+    rows = b.write_trace(path)
+    lines = path.read_text().splitlines()
+    assert lines[0] == "state_seq,arrival_ns,sent_ns" and len(lines) == rows + 1
+    trace = [tuple(int(x) for x in line.split(",")) for line in lines[1:]]
+    answered = [(c.state_seq, c.header.stamp_ns) for _, c in rec.cmds if c.state_seq != 0xFFFFFFFF]
+    assert any(c.state_seq == 0xFFFFFFFF for _, c in rec.cmds)  # the timer's damping, not in the trace
+    assert [(seq, sent) for seq, _, sent in trace] == answered
+    for _, arrival, sent in trace:
+        assert 0 <= sent - arrival < 50_000_000  # arrival, then the step and the send on the same clock
+    capped = _bridge(tmp_path, Recorder())
+    capped.start_trace(steps=3)
+    capped.trace.extend([(1, 0, 0)] * 5)
+    assert len(capped.trace) == 3  # the newest `steps` commands only
+
+
 def test_local_clock_mode_steps_on_the_bridge_clock(tmp_path, realtime):
     """--clock local: absolute deadlines of the bridge's own clock, newest state each time."""
     rec = Recorder()

@@ -102,6 +102,9 @@ def test_starts_short_form(tmp_path):
             # the worst state's way in (to the bridge's send, by the command's own stamp) and back
             assert r["worst_in_ms"] > 0.0 and r["worst_back_ms"] > 0.0
             assert r["worst_in_ms"] + r["worst_back_ms"] == pytest.approx(r["worst_ms"])
+            # ... and the way in again, at the state's arrival in the bridge (its --trace)
+            assert r["worst_transport_ms"] > 0.0 and r["worst_bridge_ms"] > 0.0
+            assert r["worst_transport_ms"] + r["worst_bridge_ms"] == pytest.approx(r["worst_in_ms"])
     assert summary["bad_starts"] == len(faulted) == summary["bad_after_a_late_robot_state"], summary
     assert len(faulted) < 2, "both starts latched a fault after a late harness state: rerun on a quieter machine"
     assert "bridge starts" in res.stdout

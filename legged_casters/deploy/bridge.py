@@ -76,6 +76,10 @@ from legged_casters.deploy.policy import (
 from legged_casters.deploy.standup import Righting, RightingCfg, StandUp, StandUpCfg
 
 MAX_STATE_RATE_HZ = 1000.0
+NO_STATE_SEQ = 0xFFFFFFFF
+"""JointCommand.state_seq of a command that answers no state (damping on a timer)."""
+TRACE_STEPS = 180_000
+"""Commands `--trace` keeps: the last hour at 50 Hz."""
 """The fastest robot state stream the bridge expects (a Go2 publishes LowState at 500 Hz)."""
 
 
@@ -193,6 +197,7 @@ class Bridge:
         self.policy_steps = 0
         self.commands_sent = 0
         self.last_cmd_seq = 0
+        self.trace: collections.deque | None = None  # (state seq, its arrival ns, the answer's send ns); start_trace
         self.rate = RateStats(self.dt)
         self._next_damping = 0.0
         self._next_status = 0.0
@@ -310,6 +315,22 @@ class Bridge:
         self.publish("cmd", P.JointCommand(int(mode), list(q), list(kp), list(kd), state_seq, h, dq).encode())
         self.commands_sent += 1
         self.last_cmd_seq = h.seq
+        if self.trace is not None and state_seq != NO_STATE_SEQ:  # the state answered is the newest
+            self.trace.append((state_seq, int(self._latest_arrival * 1e9), h.stamp_ns))
+
+    def start_trace(self, steps: int = TRACE_STEPS) -> None:
+        """Keep, for the last `steps` commands that answer a state, the state's seq, its
+        arrival here and the command's send (its header stamp), both CLOCK_MONOTONIC ns:
+        the way from the robot's put to this bridge's send splits there into the state's
+        transport and the bridge's own step."""
+        self.trace = collections.deque(maxlen=steps)
+
+    def write_trace(self, path: Path) -> int:
+        """The trace as CSV (state_seq, arrival_ns, sent_ns); returns its row count."""
+        with self._cv:
+            rows = list(self.trace or ())
+        path.write_text("state_seq,arrival_ns,sent_ns\n" + "".join(f"{a},{b},{c}\n" for a, b, c in rows))
+        return len(rows)
 
     def _clip_q(self, q) -> np.ndarray:
         """Position joints' targets inside their limits; velocity joints' angles as given
@@ -643,7 +664,9 @@ def warm_up(meta: PolicyMeta, config: BridgeConfig, runner: PolicyRunner) -> Bri
 class ZenohBridge:
     """A Bridge wired to a zenoh session: subscribes to state and operator, publishes cmd and status."""
 
-    def __init__(self, session, namespace: str, meta: PolicyMeta, config: BridgeConfig, runner=None):
+    def __init__(
+        self, session, namespace: str, meta: PolicyMeta, config: BridgeConfig, runner=None, trace_steps: int = 0
+    ):
         self.session = session
         self.keys = P.keys(namespace)
         self.pubs = {
@@ -651,6 +674,8 @@ class ZenohBridge:
             "status": session.declare_publisher(self.keys["status"]),
         }
         self.bridge = Bridge(meta, config, self._publish, runner)
+        if trace_steps:  # before the subscribers: the first command is traced too
+            self.bridge.start_trace(trace_steps)
         self.subs = [
             session.declare_subscriber(self.keys["state"], lambda s: self.bridge.on_state(s.payload.to_bytes())),
             session.declare_subscriber(self.keys["operator"], lambda s: self.bridge.on_operator(s.payload.to_bytes())),
@@ -723,6 +748,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="robot: step on the state timestamps (lowest latency); local: on this process's clock, newest state",
     )
     p.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0: run until Ctrl-C)")
+    p.add_argument(
+        "--trace",
+        type=Path,
+        default=None,
+        metavar="CSV",
+        help="at exit, write each command's state seq, the state's arrival and the command's send (CLOCK_MONOTONIC "
+        f"ns) to CSV: where a state's latency goes (the last {TRACE_STEPS} commands)",
+    )
     p.add_argument(
         "--summary-every", type=float, default=10.0, help="seconds between one-line health summaries (0: none)"
     )
@@ -816,7 +849,7 @@ def main(argv: list[str] | None = None) -> int:
     except transport.SessionError as err:
         print(f"bridge: error: {err}", file=sys.stderr)
         return 2
-    zb = ZenohBridge(session, args.namespace, meta, cfg, runner).start()
+    zb = ZenohBridge(session, args.namespace, meta, cfg, runner, TRACE_STEPS if args.trace else 0).start()
     print(
         f"bridge: {meta.task} ({meta.robot}), {1 / meta.control_dt:.0f} Hz, "
         f"keys {zb.keys['state']} -> {zb.keys['cmd']}",
@@ -853,6 +886,12 @@ def main(argv: list[str] | None = None) -> int:
         zb.stop()
         session.close()
     _print_transitions(zb.bridge, seen)  # a change in the last 0.2 s too (a fault, with what tripped it)
+    if args.trace is not None:
+        try:
+            print(f"bridge: {zb.bridge.write_trace(args.trace)} commands traced to {args.trace}", flush=True)
+        except OSError as err:
+            print(f"bridge: error: --trace {args.trace}: {err}", file=sys.stderr)
+            return 2
     print(
         f"bridge: state {P.BridgeState(st.state).name} ({P.Fault(st.fault).name}), "
         f"policy steps {st.policy_steps}, commands {st.commands}, "
