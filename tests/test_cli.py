@@ -895,7 +895,8 @@ def test_a_start_after_a_stop_passes_on_its_own_axis_without_a_fall():
         go((-0.5, 0.0, 0.0), (0.1, 0.0, 0.0)),
     ])  # fmt: skip
     assert [ok for _, ok, _ in checks] == [True, False, False, True]
-    assert "|vy error| <= 0.15" in checks[0][0] and "1 fall" in checks[1][2]
+    assert "|vy error| <= 0.15" in checks[0][0] and checks[1][2] == "0.100 (1 fall)"
+    assert evaluate.error_checks(checks[:2])["go: |vy error| <= 0.15, no fall"] == ("lin", 0.1)
     wheel = evaluate.verdict([go((0.0, 0.0, 0.8), (0.0, 0.0, 0.22))], "go2_wheel_flat")
     assert not wheel[0][1]  # the wheel task's own wz bar (0.2)
 

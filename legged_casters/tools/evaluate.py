@@ -140,11 +140,8 @@ STOP = (
     _slope("vx +0.5 down 5deg", 0.5, 5.0, True),
     _slope("vx +0.5 up 5deg", 0.5, 5.0, False),
     _go_again(0.0, (0.5, 0.0, 0.0)),
-    _go_again(1.0, (1.0, 0.0, 0.0)),
-    _go_again(1.0, (-0.5, 0.0, 0.0)),
-    _go_again(1.0, (0.0, 0.4, 0.0)),
-    _go_again(1.0, (0.0, 0.0, 0.8)),
-    _go_again(-1.0, (0.5, 0.0, 0.0)),
+    *(_go_again(1.0, after) for after in ((1.0, 0.0, 0.0), (-0.5, 0.0, 0.0), (0.0, 0.4, 0.0), (0.0, 0.0, 0.8))),
+    *(_go_again(-1.0, after) for after in ((0.5, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 0.4, 0.0), (0.0, 0.0, 0.8))),
 )
 """Stopping, starting again and slopes: a zero command at speed (rest = |vx| below REST_SPEED
 from then to the end), reversals at speed (time until vx crosses zero), zero commands held on
@@ -701,7 +698,7 @@ def verdict(results: list[ScenarioResult], task: str | None = None) -> list[tupl
             axis = next(k for k, c in zip(("vx", "vy", "wz"), r.cmd, strict=True) if c)
             bar = bars.get(axis, min(b for a, b in THRESHOLDS.values() if a == axis))
             ok = r.err[axis] <= bar and not r.falls
-            measured = f"{r.err[axis]:.3f}" + (f", {r.falls} fall" if r.falls else "")
+            measured = f"{r.err[axis]:.3f}" + (f" ({r.falls} fall)" if r.falls else "")  # the error first
             checks.append((f"{r.name}: |{axis} error| <= {bar}, no fall", ok, measured))
     steep = [r for r in results if r.kind in ("hold", "slope") and r.slope_deg > 3.0]
     if steep:
