@@ -14,7 +14,7 @@ from legged_casters import registry
 from legged_casters.config import ConfigError
 from legged_casters.deploy import protocol as P
 from legged_casters.deploy.policy import ObservationBuilder, PolicyFormatError, load_meta
-from legged_casters.envs.gait import GaitPrior, GaitPriorCfg, gait_prior
+from legged_casters.envs.gait import GaitPrior, GaitPriorCfg, gait_prior, stop_pose
 from legged_casters.learning.models import PriorMLPModel
 from legged_casters.robot import go2
 from legged_casters.tools import evaluate, export
@@ -573,6 +573,45 @@ def test_the_stop_pose_takes_over_under_a_zero_command_only(tmp_path):
     del p["slices"]["actions"]
     with pytest.raises(ValueError, match="actions"):
         GaitPrior(p["cfg"], p["slices"], p["action_scale"])
+    e.close()
+
+
+def test_the_backward_stop_pose_waits_for_a_backward_roll_and_then_holds(tmp_path):
+    """gait.stop_backward_speed: under a zero command the pose applies only where the velocity
+    estimate rolls backwards faster than the setting, or where the last action is already
+    within half the pose's distance of it (the pose held once entered); a forward roll and
+    any other command keep the actor's own action; the export computes the same; without an
+    estimate the prior refuses."""
+    pitch, rate, speed = 0.4, 0.2, 0.15
+    sets = [*CPU, f"gait.stop_pitch={pitch}", f"gait.stop_backward_speed={speed}"]
+    e = registry.make_env(TASK, sets, num_envs=6)
+    scale = e.cfg.control.action_scale
+    pose = (stop_pose(pitch, 0.0) / scale).reshape(1, 12)
+    cmds = torch.zeros(6, 3)
+    cmds[5, 0] = 0.5
+    e.set_commands(cmds)
+    held = torch.zeros(6, 12)
+    held[3:5] = pose  # rows 3 and 4: in the pose already (row 4 exactly, row 3 a little off)
+    held[3] += 0.3
+    for _ in range(2):
+        obs, *_ = e.step(held)
+    p = e.actor_prior()
+    prior = GaitPrior(p["cfg"], p["slices"], p["action_scale"])
+    mean = torch.full((6, 12), 0.3)
+    velocity = torch.tensor([[-0.5, 0, 0], [0.5, 0, 0], [-0.1, 0, 0], [0.5, 0, 0], [0.0, 0, 0], [-0.5, 0, 0]])
+    out = prior.stop(obs["policy"], mean, velocity)
+    last = held.clone()
+    toward = last + rate * (pose - last)
+    assert torch.allclose(out[0], toward[0], atol=1e-5)  # a backward roll under a zero command
+    assert torch.equal(out[1], mean[1]) and torch.equal(out[2], mean[2])  # forward, or too slow backwards
+    assert torch.allclose(out[[3, 4]], toward[[3, 4]], atol=1e-5)  # held once near the pose, whatever the roll
+    assert torch.equal(out[5], mean[5])  # a command
+    with pytest.raises(RuntimeError, match="velocity estimate"):
+        prior.stop(obs["policy"], mean, velocity[:, :0])
+    actor = export.build_actor(e, registry.get_task(TASK).train_cfg)
+    paths = export.export_policy(actor, export.policy_metadata(e, TASK), tmp_path)
+    err = export.check_parity(actor, paths, obs["policy"])
+    assert max(err.values()) < 1e-5, err
     e.close()
 
 

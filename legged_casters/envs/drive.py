@@ -41,6 +41,6 @@ class DrivePrior(torch.nn.Module):
         return torch.cat([legs, wheels], dim=1)
 
     @torch.jit.export
-    def stop(self, obs: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
+    def stop(self, obs: torch.Tensor, mean: torch.Tensor, velocity: torch.Tensor) -> torch.Tensor:
         """The actor's mean unchanged: the wheel robot has no stop pose (GaitPrior.stop's call)."""
         return mean

@@ -135,6 +135,14 @@ class GaitPriorCfg:
     Reads the `actions` observation term (the last action)."""
     stop_roll: float = 0.0
     """Hip offset x side (left +1) of the stop pose, rad."""
+    stop_backward_speed: float | None = field(default=None, metadata={"min": 0.0})
+    """None: the stop pose under every zero command. A speed v (m/s): only where the actor's
+    velocity estimate says the trunk rolls backwards faster than v when the command is zero,
+    and from then on while it stays zero (the last action within half the pose's distance of
+    the pose); a forward roll is left to the actor. The legs cannot brake a backward roll by
+    pushing, the pose brakes it in under a second, and a start out of the pose after a
+    backward roll does not fall, after a forward one it does (research/log.md, "A stop pose
+    for backward rolls only"). Needs the velocity estimator."""
     stop_rate: float = field(default=0.2, metadata={"min": 1e-3, "max": 1.0})
     """Share of the remaining way from the last action to the stop pose covered each control
     step (0.2 at 50 Hz: 95 % in 0.28 s)."""
@@ -354,6 +362,8 @@ class GaitPrior(torch.nn.Module):
         acts = slices.get("actions", [0, 1.0])
         self.act_start, self.act_scale = int(acts[0]), float(acts[1])
         self.stop_rate = float(c.stop_rate)
+        self.stop_backward_on = c.stop_backward_speed is not None
+        self.stop_backward_speed = float(c.stop_backward_speed or 0.0)
         pose = stop_pose(float(c.stop_pitch or 0.0), float(c.stop_roll)) / self.action_scale
         self.register_buffer("stop_action", pose.reshape(1, 12), persistent=False)
         self.register_buffer("foot_xy", FOOT_XY.clone(), persistent=False)
@@ -377,15 +387,22 @@ class GaitPrior(torch.nn.Module):
         return offsets / self.action_scale
 
     @torch.jit.export
-    def stop(self, obs: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
+    def stop(self, obs: torch.Tensor, mean: torch.Tensor, velocity: torch.Tensor) -> torch.Tensor:
         """The actor's mean (n, 12) with the stop pose (GaitPriorCfg.stop_pitch) where the raw
-        observation's command is zero: the last action moved `stop_rate` of the way to the pose."""
+        observation's command is zero (with stop_backward_speed: and the trunk rolls backwards
+        by `velocity`, the actor's estimate (n, 3), or the last action is already near the pose):
+        the last action moved `stop_rate` of the way to the pose."""
         if not self.stop_on:
             return mean
         commands = obs[:, self.cmd_start : self.cmd_start + 3]
         last = obs[:, self.act_start : self.act_start + 12] / self.act_scale
-        zero = (commands == 0.0).all(dim=1, keepdim=True)
-        return torch.where(zero, last + self.stop_rate * (self.stop_action - last), mean)
+        posing = (commands == 0.0).all(dim=1, keepdim=True)
+        if self.stop_backward_on:
+            if velocity.shape[1] < 1:
+                raise RuntimeError("gait.stop_backward_speed needs the actor's velocity estimate (estimator.enabled)")
+            near = (last - self.stop_action).pow(2).sum(dim=1, keepdim=True) < 0.25 * self.stop_action.pow(2).sum()
+            posing = posing & (near | (velocity[:, 0:1] < -self.stop_backward_speed))
+        return torch.where(posing, last + self.stop_rate * (self.stop_action - last), mean)
 
 
 def stop_pose(pitch: float, roll: float, thigh: float = 0.0) -> torch.Tensor:

@@ -177,7 +177,8 @@ class PriorMLPModel(MLPModel):
         mean = self.mlp(x) + self.prior(raw, estimate)
         if self.mirrored:
             mean = symmetric_mean(mean, *self._map("action"))
-        mean = self.prior.stop(observed, mean)  # the stop pose under a zero command, where the prior has one
+        # the stop pose under a zero command, where the prior has one (the estimate of the rows observed)
+        mean = self.prior.stop(observed, mean, estimate[: observed.shape[0]])
         if self.distribution is not None:
             if stochastic_output:
                 self.distribution.update(mean)

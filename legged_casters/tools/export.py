@@ -101,7 +101,7 @@ class DeployedPolicy(nn.Module):
         if self.mirrored:
             mean = symmetric_mean(mean, self.action_mirror_index, self.action_mirror_sign)
         if self.prior is not None:  # the stop pose under a zero command, where the prior has one
-            mean = self.prior.stop(observed, mean)
+            mean = self.prior.stop(observed, mean, estimate[: observed.shape[0]])
         return self.head(mean)
 
     @torch.jit.export
