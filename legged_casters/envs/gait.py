@@ -140,9 +140,10 @@ class GaitPriorCfg:
     velocity estimate says the trunk rolls backwards faster than v when the command is zero,
     and from then on while it stays zero (the last action within half the pose's distance of
     the pose); a forward roll is left to the actor. The legs cannot brake a backward roll by
-    pushing, the pose brakes it in under a second, and a start out of the pose after a
-    backward roll does not fall, after a forward one it does (research/log.md, "A stop pose
-    for backward rolls only"). Needs the velocity estimator."""
+    pushing and the pose brakes it in under a second; starts out of the pose after a
+    backward roll fell in 0 and 2 of 15 with the two networks tried, after a forward one
+    they fall more often (research/log.md, "A stop pose for backward rolls only"). Needs
+    the velocity estimator."""
     stop_rate: float = field(default=0.2, metadata={"min": 1e-3, "max": 1.0})
     """Share of the remaining way from the last action to the stop pose covered each control
     step (0.2 at 50 Hz: 95 % in 0.28 s)."""
