@@ -636,17 +636,25 @@ def test_a_fall_while_running_damps_until_a_reset_stands_it_up_again(tmp_path, r
         b.stop()
 
 
+def _run_against_a_500hz_robot(b: Bridge, policy_steps: int) -> None:
+    """Start `b`, stream it standing states at 500 Hz (a Go2's rate) until it has taken
+    `policy_steps` policy steps, then stop the stream (the bridge keeps running)."""
+    b.start()
+    robot = FakeRobot(b.on_state, period=0.002)
+    try:
+        assert wait_for(lambda: b.policy_steps >= policy_steps, 3.0)
+    finally:
+        robot.stop()
+
+
 def test_policy_steps_on_the_robot_clock_with_a_fast_state_stream(tmp_path, realtime):
     """A Go2 publishes state at 500 Hz: the bridge answers exactly every 10th state (its
     timestamp reaches the next 20 ms deadline), not every state, not on its own clock."""
     rec = Recorder()
     b = _bridge(tmp_path, rec, standup_time=0.1)
-    b.start()
-    robot = FakeRobot(b.on_state, period=0.002)
     try:
-        assert wait_for(lambda: b.policy_steps >= 30, 3.0)
+        _run_against_a_500hz_robot(b, 30)
     finally:
-        robot.stop()
         b.stop()
     seqs = [c.state_seq for _, c in rec.cmds]
     assert len(seqs) >= 35 and set(np.diff(seqs)) == {10}, np.diff(seqs)
@@ -661,12 +669,7 @@ def test_the_trace_stamps_each_answered_states_arrival_before_its_answer(tmp_pat
     rec = Recorder()
     b = _bridge(tmp_path, rec, standup_time=0.1, max_state_age=0.05)
     b.start_trace(steps=1000)
-    b.start()
-    robot = FakeRobot(b.on_state, period=0.002)
-    try:
-        assert wait_for(lambda: b.policy_steps >= 10, 3.0)
-    finally:
-        robot.stop()
+    _run_against_a_500hz_robot(b, 10)
     assert wait_for(lambda: b.state is P.BridgeState.DAMPING, 1.0)  # stale: damping on the bridge's own timer
     time.sleep(3 * DT)
     b.stop()
@@ -675,8 +678,8 @@ def test_the_trace_stamps_each_answered_states_arrival_before_its_answer(tmp_pat
     lines = path.read_text().splitlines()
     assert lines[0] == "state_seq,arrival_ns,sent_ns" and len(lines) == rows + 1
     trace = [tuple(int(x) for x in line.split(",")) for line in lines[1:]]
-    answered = [(c.state_seq, c.header.stamp_ns) for _, c in rec.cmds if c.state_seq != 0xFFFFFFFF]
-    assert any(c.state_seq == 0xFFFFFFFF for _, c in rec.cmds)  # the timer's damping, not in the trace
+    answered = [(c.state_seq, c.header.stamp_ns) for _, c in rec.cmds if c.state_seq != P.NO_STATE_SEQ]
+    assert any(c.state_seq == P.NO_STATE_SEQ for _, c in rec.cmds)  # the timer's damping, not in the trace
     assert [(seq, sent) for seq, _, sent in trace] == answered
     for _, arrival, sent in trace:
         assert 0 <= sent - arrival < 50_000_000  # arrival, then the step and the send on the same clock

@@ -76,11 +76,9 @@ from legged_casters.deploy.policy import (
 from legged_casters.deploy.standup import Righting, RightingCfg, StandUp, StandUpCfg
 
 MAX_STATE_RATE_HZ = 1000.0
-NO_STATE_SEQ = 0xFFFFFFFF
-"""JointCommand.state_seq of a command that answers no state (damping on a timer)."""
+"""The fastest robot state stream the bridge expects (a Go2 publishes LowState at 500 Hz)."""
 TRACE_STEPS = 180_000
 """Commands `--trace` keeps: the last hour at 50 Hz."""
-"""The fastest robot state stream the bridge expects (a Go2 publishes LowState at 500 Hz)."""
 
 
 def state_window(max_state_age: float) -> int:
@@ -315,7 +313,7 @@ class Bridge:
         self.publish("cmd", P.JointCommand(int(mode), list(q), list(kp), list(kd), state_seq, h, dq).encode())
         self.commands_sent += 1
         self.last_cmd_seq = h.seq
-        if self.trace is not None and state_seq != NO_STATE_SEQ:  # the state answered is the newest
+        if self.trace is not None and state_seq != P.NO_STATE_SEQ:  # the state answered is the newest
             self.trace.append((state_seq, int(self._latest_arrival * 1e9), h.stamp_ns))
 
     def start_trace(self, steps: int = TRACE_STEPS) -> None:
@@ -338,7 +336,7 @@ class Bridge:
         q = np.asarray(q, np.float64)
         return np.where(self.position, np.clip(q, self.lo, self.hi), q)
 
-    def _send_damping(self, state_seq: int = 0xFFFFFFFF) -> None:
+    def _send_damping(self, state_seq: int = P.NO_STATE_SEQ) -> None:
         q = self._latest.q if self._latest is not None else self.default
         self._send_command(P.CommandMode.DAMPING, self._clip_q(q), np.zeros(self.n), self.damp_kd, state_seq)
 

@@ -237,6 +237,8 @@ class RobotState:
 
 # --- joint command -----------------------------------------------------------------------
 _CMD_HEAD = struct.Struct("<BBxxI")
+NO_STATE_SEQ = 0xFFFFFFFF
+"""JointCommand.state_seq of a command that answers no state (e.g. damping on a timer)."""
 
 
 @dataclass
@@ -255,7 +257,7 @@ class JointCommand:
     q: list[float]
     kp: list[float]
     kd: list[float]
-    state_seq: int = 0xFFFFFFFF
+    state_seq: int = NO_STATE_SEQ
     header: Header = field(default_factory=Header)
     dq: list[float] | None = None
 

@@ -110,12 +110,17 @@ def _short(value: float) -> str:
     return text[:-1] if text.endswith("0") else text
 
 
+def _axis(cmd: tuple[float, float, float]) -> str:
+    """The first axis ("vx", "vy" or "wz") a command moves along."""
+    return next(k for k, c in zip(("vx", "vy", "wz"), cmd, strict=True) if c)
+
+
 def _go_again(before: float, after: tuple[float, float, float]) -> Scenario:
     """Move at vx `before` for 4 s (stand 1 s when 0), a zero command for GO_STOPPED_S, then
     `after`: a start out of whatever a stop left (pose, casters, speed)."""
     move = 4.0 if before else 1.0
     start = move + (GO_STOPPED_S if before else 0.0)
-    axis = next(k for k, c in zip(("vx", "vy", "wz"), after, strict=True) if c)
+    axis = _axis(after)
     origin = f"a stop from {_short(before)}" if before else "a stand"
     stop = ((move, (0.0, 0.0, 0.0)),) if before else ()
     return Scenario(f"go after {origin}: {axis} {_short(sum(after))}",
@@ -695,7 +700,7 @@ def verdict(results: list[ScenarioResult], task: str | None = None) -> list[tupl
             ok = r.err["vx"] <= SLOPE_VX_ERROR and not r.falls
             checks.append((f"{r.name}: |vx error| <= {SLOPE_VX_ERROR}", ok, f"{r.err['vx']:.3f}"))
         elif r.kind == "go":
-            axis = next(k for k, c in zip(("vx", "vy", "wz"), r.cmd, strict=True) if c)
+            axis = _axis(r.cmd)
             bar = bars.get(axis, min(b for a, b in THRESHOLDS.values() if a == axis))
             ok = r.err[axis] <= bar and not r.falls
             measured = f"{r.err[axis]:.3f}" + (f" ({r.falls} fall)" if r.falls else "")  # the error first
