@@ -39,6 +39,13 @@ class PolicyCfg:
     rollout, as the deployed actor does, so that PPO's batch and the velocity estimator's
     samples also hold what the noise-free robot does; 0: every env explores."""
     obs_normalization: bool = True
+    stop_pose_imitation: float = field(default=0.0, metadata={"min": 0.0})
+    """Learning rate of one pass of Adam after each update that pulls the MLP's own mean
+    towards the stop pose's action where the pose holds (gait.stop_pitch; PPO gives the MLP
+    no gradient there, and the actor hands back to that output when a command comes);
+    needs the velocity estimator. 0: off. At 1e-4 it closes the gap and the action spikes at
+    the pose's exit, and the network then drifts into the pose after forward stops too; at
+    1e-3 it collapses into the pose (research/log.md, "The MLP taught to hold the pose")."""
     critic_history: bool = True
     """Whether the critic's MLP reads the actor's proprioceptive history (it has the privileged state)."""
 
@@ -314,5 +321,8 @@ class TrainCfg:
                 estimator_epochs=est.epochs,
                 estimator_mini_batches=est.mini_batches,
                 estimator_mirror=self.symmetry.estimator,
+                pose_imitation_learning_rate=self.policy.stop_pose_imitation,
             )
+        elif self.policy.stop_pose_imitation > 0.0:
+            raise ConfigError("policy.stop_pose_imitation needs the velocity estimator (estimator.hidden_dims)")
         return cfg

@@ -258,3 +258,57 @@ def test_estimator_study_steady_commands():
         study.parse_steady("fast")
     with pytest.raises(SystemExit):  # a usage error before anything runs
         study.main(["--load_run", "x", "--checkpoint", "1", "--steady-commands", "1,fast"])
+
+
+def test_pose_imitation_pulls_the_networks_own_mean_to_the_held_stop_pose():
+    """policy.stop_pose_imitation: where the stop pose holds (a zero command, the last action
+    near the pose), PPO gives the MLP no gradient; the imitation pass pulls the network's
+    own mean there towards the posed action, on those samples only. Without the pose or
+    without the estimator it refuses."""
+    from legged_casters.config import ConfigError
+    from legged_casters.envs.gait import stop_pose
+
+    sets = [*CPU, "gait.stop_pitch=0.4"]
+    e = registry.make_env(TASK, sets, num_envs=16)
+    pose = (stop_pose(0.4, 0.0) / e.cfg.control.action_scale).reshape(1, 12)
+    train = copy.deepcopy(registry.get_task(TASK).train_cfg)
+    train.policy.stop_pose_imitation = 1e-2
+    cfg = train.for_env(e)
+    cfg["num_steps_per_env"] = 8
+    runner = OnPolicyRunner(e, copy.deepcopy(cfg), log_dir=None, device="cpu")
+    alg = runner.alg
+    commands = torch.zeros(16, 3)
+    commands[8:, 0] = 0.5  # half the robots have a command: never posed
+    e.set_commands(commands)
+    e.step(pose.expand(16, 12).clone())  # the last action is the pose: it holds under the zero command
+    obs = e.get_observations()
+    alg.train_mode()
+    for _ in range(8):
+        with torch.no_grad():
+            actions = alg.act(obs)
+        obs, rewards, dones, extras = e.step(actions.clamp(-1.0, 1.0) * 0.0 + pose)
+        e.set_commands(commands)
+        alg.process_env_step(obs, rewards, dones, extras)
+    batch = alg.storage.observations.flatten(0, 1)
+
+    def gap() -> tuple[float, int]:
+        with torch.no_grad():
+            own, posed = alg.actor.means(batch)
+        held = (own != posed).any(dim=1)
+        return float((own - posed)[held].pow(2).mean()), int(held.sum())
+
+    before, n = gap()
+    assert n == 8 * 8  # every zero-command robot at every step
+    losses = [alg.update_pose_imitation() for _ in range(30)]
+    after, _ = gap()
+    assert losses[-1] < 0.5 * losses[0]
+    assert after < 0.2 * before, (before, after)
+    e.close()
+
+    plain = registry.make_env(TASK, CPU, num_envs=4)  # no stop pose: nothing to imitate
+    with pytest.raises(ValueError, match="stop_pitch"):
+        OnPolicyRunner(plain, copy.deepcopy(train.for_env(plain)), log_dir=None, device="cpu")
+    train.estimator.hidden_dims = ()
+    with pytest.raises(ConfigError, match="estimator"):
+        train.to_rsl_rl()
+    plain.close()

@@ -67,6 +67,7 @@ class EstimatorPPO(PPO):
         estimator_epochs: int = 2,
         estimator_mini_batches: int = 4,
         estimator_mirror: bool = False,
+        pose_imitation_learning_rate: float = 0.0,
         **kwargs,
     ):
         super().__init__(*args, **kwargs)
@@ -79,13 +80,45 @@ class EstimatorPPO(PPO):
         self.estimator_epochs = int(estimator_epochs)
         self.estimator_mini_batches = int(estimator_mini_batches)
         self.estimator_optimizer = torch.optim.Adam(estimator.parameters(), lr=estimator_learning_rate)
+        self.pose_optimizer = None
+        if pose_imitation_learning_rate > 0.0:
+            if not getattr(getattr(self._raw_actor, "prior", None), "stop_on", False):
+                raise ValueError("policy.stop_pose_imitation needs the stop pose (gait.stop_pitch)")
+            self.pose_optimizer = torch.optim.Adam(self._raw_actor.mlp.parameters(), lr=pose_imitation_learning_rate)
 
     def update(self) -> dict[str, float]:
         losses = super().update()  # leaves the rollout in storage (clear() only rewinds its cursor)
         mse = self.update_estimator()
         losses["estimator_mse"] = mse
         losses["estimator_rms"] = (mse * 3.0) ** 0.5  # RMS of the 3-vector error, m/s
+        if self.pose_optimizer is not None:
+            losses["pose_imitation"] = self.update_pose_imitation()
         return losses
+
+    def update_pose_imitation(self) -> float:
+        """One pass of Adam over the rollout that pulls the network's own mean towards the
+        stop pose's action on the samples where the pose holds (policy.stop_pose_imitation):
+        PPO gives the MLP no gradient there (the pose replaces its output), and the actor
+        hands back to that output when the command comes. The mean squared gap (action
+        units^2) over the posed samples, 0 without any."""
+        actor = self._raw_actor
+        total, count = 0.0, 0
+        for batch in self.storage.mini_batch_generator(self.estimator_mini_batches, 1):
+            own, posed = actor.means(batch.observations)
+            held = (own != posed).any(dim=1)
+            # a batch without a posed sample steps too (a zero gradient): every process of a
+            # multi-process run must reach the same gradient reductions
+            gap = (own - posed.detach()).pow(2).mean(dim=1)
+            loss = (gap * held).sum() / held.sum().clamp(min=1)
+            self.pose_optimizer.zero_grad()
+            loss.backward()
+            if self.is_multi_gpu:
+                reduce_gradients_in_buckets(actor.mlp.parameters(), self.gpu_world_size, self.grad_reduce_bucket_mb)
+            self.pose_optimizer.step()
+            if held.any():
+                total += loss.item()
+                count += 1
+        return total / max(count, 1)
 
     def update_estimator(self) -> float:
         """`estimator_epochs` passes of Adam over the rollout in storage; the mean MSE (m/s)^2."""

@@ -169,16 +169,21 @@ class PriorMLPModel(MLPModel):
     def as_onnx(self, verbose: bool):
         raise NotImplementedError("rsl_rl's ONNX export would drop the prior: use export.py (DeployedPolicy)")
 
-    def forward(self, obs: TensorDict, masks=None, hidden_state=None, stochastic_output: bool = False) -> torch.Tensor:
-        obs = unpad_trajectories(obs, masks) if masks is not None and not self.is_recurrent else obs
+    def means(self, obs: TensorDict) -> tuple[torch.Tensor, torch.Tensor]:
+        """(the network's own mean: prior + MLP, symmetrised; the actor's mean: the same with
+        the stop pose where it holds, GaitPriorCfg.stop_pitch) for a batch of observations."""
         observed = torch.cat([obs[group] for group in self.obs_groups], dim=-1)
         raw = with_mirror_image(observed, *self._map("observation")) if self.mirrored else observed
         x, estimate = self.mlp_input(self.obs_normalizer(raw))
-        mean = self.mlp(x) + self.prior(raw, estimate)
+        own = self.mlp(x) + self.prior(raw, estimate)
         if self.mirrored:
-            mean = symmetric_mean(mean, *self._map("action"))
+            own = symmetric_mean(own, *self._map("action"))
         # the stop pose under a zero command, where the prior has one (the estimate of the rows observed)
-        mean = self.prior.stop(observed, mean, estimate[: observed.shape[0]])
+        return own, self.prior.stop(observed, own, estimate[: observed.shape[0]])
+
+    def forward(self, obs: TensorDict, masks=None, hidden_state=None, stochastic_output: bool = False) -> torch.Tensor:
+        obs = unpad_trajectories(obs, masks) if masks is not None and not self.is_recurrent else obs
+        mean = self.means(obs)[1]
         if self.distribution is not None:
             if stochastic_output:
                 self.distribution.update(mean)
