@@ -44,8 +44,9 @@ class PolicyCfg:
     towards the stop pose's action where the pose holds (gait.stop_pitch; PPO gives the MLP
     no gradient there, and the actor hands back to that output when a command comes);
     needs the velocity estimator. 0: off. At 1e-4 it closes the gap and the action spikes at
-    the pose's exit, and the network then drifts into the pose after forward stops too; at
-    1e-3 it collapses into the pose (research/log.md, "The MLP taught to hold the pose")."""
+    the pose's exit within 50-75 iterations, and by 150-200 the network has collapsed into the
+    pose (it stops at once and no longer starts); at 1e-3 within 75 (research/log.md, "The
+    MLP taught to hold the pose")."""
     critic_history: bool = True
     """Whether the critic's MLP reads the actor's proprioceptive history (it has the privileged state)."""
 
