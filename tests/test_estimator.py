@@ -262,9 +262,9 @@ def test_estimator_study_steady_commands():
 
 def test_pose_imitation_pulls_the_networks_own_mean_to_the_held_stop_pose():
     """policy.stop_pose_imitation: where the stop pose holds (a zero command, the last action
-    near the pose), PPO gives the MLP no gradient; the imitation pass pulls the network's
-    own mean there towards the posed action, on those samples only. Without the pose or
-    without the estimator it refuses."""
+    near the pose), PPO gives the MLP no gradient; the imitation pass's loss is the gap
+    between the network's own mean and the posed action over those samples, and its steps
+    close it. Without the pose or without the estimator it refuses."""
     from legged_casters.config import ConfigError
     from legged_casters.envs.gait import stop_pose
 
@@ -286,7 +286,8 @@ def test_pose_imitation_pulls_the_networks_own_mean_to_the_held_stop_pose():
     for _ in range(8):
         with torch.no_grad():
             actions = alg.act(obs)
-        obs, rewards, dones, extras = e.step(actions.clamp(-1.0, 1.0) * 0.0 + pose)
+        assert actions.shape == (16, 12)
+        obs, rewards, dones, extras = e.step(pose.expand(16, 12).clone())  # stay in the pose whatever was sampled
         e.set_commands(commands)
         alg.process_env_step(obs, rewards, dones, extras)
     batch = alg.storage.observations.flatten(0, 1)
