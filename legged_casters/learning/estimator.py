@@ -95,6 +95,15 @@ class EstimatorPPO(PPO):
             losses["pose_imitation"] = self.update_pose_imitation()
         return losses
 
+    def _step(self, optimizer: torch.optim.Optimizer, module: torch.nn.Module, loss: torch.Tensor) -> None:
+        """One step of `optimizer` on `module`'s weights down `loss`; as PPO's own step, every
+        process of a multi-process run applies the averaged gradient."""
+        optimizer.zero_grad()
+        loss.backward()
+        if self.is_multi_gpu:
+            reduce_gradients_in_buckets(module.parameters(), self.gpu_world_size, self.grad_reduce_bucket_mb)
+        optimizer.step()
+
     def update_pose_imitation(self) -> float:
         """One pass of Adam over the rollout that pulls the network's own mean towards the
         stop pose's action on the samples where the pose holds (policy.stop_pose_imitation):
@@ -110,11 +119,7 @@ class EstimatorPPO(PPO):
             # multi-process run must reach the same gradient reductions
             gap = (own - posed.detach()).pow(2).mean(dim=1)
             loss = (gap * held).sum() / held.sum().clamp(min=1)
-            self.pose_optimizer.zero_grad()
-            loss.backward()
-            if self.is_multi_gpu:
-                reduce_gradients_in_buckets(actor.mlp.parameters(), self.gpu_world_size, self.grad_reduce_bucket_mb)
-            self.pose_optimizer.step()
+            self._step(self.pose_optimizer, actor.mlp, loss)
             if held.any():
                 total += loss.item()
                 count += 1
@@ -131,13 +136,7 @@ class EstimatorPPO(PPO):
                     raise RuntimeError("estimator_mirror needs the env's mirror maps: set EstimatorPPO.mirror_env")
                 obs, _ = mirror_batch(self.mirror_env, obs)
             loss = torch.nn.functional.mse_loss(actor.estimate(obs), obs[TARGET_GROUP])
-            self.estimator_optimizer.zero_grad()
-            loss.backward()
-            if self.is_multi_gpu:  # as PPO's own step: every process applies the averaged gradient
-                reduce_gradients_in_buckets(
-                    actor.estimator.parameters(), self.gpu_world_size, self.grad_reduce_bucket_mb
-                )
-            self.estimator_optimizer.step()
+            self._step(self.estimator_optimizer, actor.estimator, loss)
             total += loss.item()
             count += 1
         return total / max(count, 1)
