@@ -871,8 +871,10 @@ def test_brake_measures_time_and_path_to_rest_and_to_the_zero_crossing():
         evaluate.ScenarioResult("hold flat", "hold", (0, 0, 0), extra={"max_drift_m": 0.05, "max_turn_deg": 6.0}),
         evaluate.ScenarioResult("hold 5deg", "hold", (0, 0, 0), falls=1, slope_deg=5.0,
                                 extra={"max_drift_m": 0.0, "max_turn_deg": 0.0}),
+        evaluate.ScenarioResult("reverse -2.0 to +0.5", "brake", (0.5, 0, 0), falls=1, extra={"cross_s": 1.1}),
     ])  # fmt: skip
-    assert [ok for _, ok, _ in checks] == [False, False, False]  # 1.6 m > 1.5 m; 6 deg > 5 deg; a fall on 5 deg
+    assert [ok for _, ok, _ in checks] == [False, False, False, False]  # 1.6 m > 1.5 m; 6 deg > 5 deg; a fall on 5 deg
+    assert checks[2][2] == "1.10 s (1 fall)"  # in time, but fell: the measurement says why it fails
 
 
 def test_a_start_after_a_stop_passes_on_its_own_axis_without_a_fall():

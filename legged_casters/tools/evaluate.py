@@ -100,6 +100,9 @@ def _slope(name: str, cmd: float, deg: float, downhill_ahead: bool, duration: fl
 
 GO_STOPPED_S = 2.0
 """s: the go-again scenarios hold the zero command this long before the new one (the stop bar)."""
+GO_EARLY_S = 0.6
+"""s: the go-during-a-stop scenarios give the new command this long after the zero command,
+while the robot still rolls (a joystick let go and pushed again)."""
 GO_WINDOW_S = (3.0, 6.0)
 """s after the new command: the window over which a go-again scenario's error is measured."""
 
@@ -115,15 +118,17 @@ def _axis(cmd: tuple[float, float, float]) -> str:
     return next(k for k, c in zip(("vx", "vy", "wz"), cmd, strict=True) if c)
 
 
-def _go_again(before: float, after: tuple[float, float, float]) -> Scenario:
-    """Move at vx `before` for 4 s (stand 1 s when 0), a zero command for GO_STOPPED_S, then
-    `after`: a start out of whatever a stop left (pose, casters, speed)."""
+def _go_again(before: float, after: tuple[float, float, float], stopped: float = GO_STOPPED_S) -> Scenario:
+    """Move at vx `before` for 4 s (stand 1 s when 0), a zero command for `stopped` s, then
+    `after`: a start out of whatever a stop left (pose, casters, speed); with GO_EARLY_S, a
+    start during the stop."""
     move = 4.0 if before else 1.0
-    start = move + (GO_STOPPED_S if before else 0.0)
+    start = move + (stopped if before else 0.0)
     axis = _axis(after)
     origin = f"a stop from {_short(before)}" if before else "a stand"
+    when = f"{stopped:g} s into" if before and stopped < GO_STOPPED_S else "after"
     stop = ((move, (0.0, 0.0, 0.0)),) if before else ()
-    return Scenario(f"go after {origin}: {axis} {_short(sum(after))}",
+    return Scenario(f"go {when} {origin}: {axis} {_short(sum(after))}",
                     ((0.0, (before, 0.0, 0.0)), *stop, (start, after)),
                     start + GO_WINDOW_S[1], start + GO_WINDOW_S[0], kind="go")  # fmt: skip
 
@@ -147,12 +152,14 @@ STOP = (
     _go_again(0.0, (0.5, 0.0, 0.0)),
     *(_go_again(1.0, after) for after in ((1.0, 0.0, 0.0), (-0.5, 0.0, 0.0), (0.0, 0.4, 0.0), (0.0, 0.0, 0.8))),
     *(_go_again(-1.0, after) for after in ((0.5, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 0.4, 0.0), (0.0, 0.0, 0.8))),
+    *(_go_again(-1.5, after, GO_EARLY_S) for after in ((0.5, 0.0, 0.0), (0.0, 0.4, 0.0), (0.0, 0.0, 0.8))),
+    *(_go_again(1.5, after, GO_EARLY_S) for after in ((0.0, 0.4, 0.0), (0.0, 0.0, 0.8))),
 )
 """Stopping, starting again and slopes: a zero command at speed (rest = |vx| below REST_SPEED
 from then to the end), reversals at speed (time until vx crosses zero), zero commands held on
 the flat and on 3 and 5 deg of ground tilted ahead of or behind the robot, +-0.5 m/s down and
 up those slopes (a command with the sign of the downhill direction goes down), and starts
-after a stand and after a stop (error over GO_WINDOW_S after the new command)."""
+after a stand, after a stop and during one (error over GO_WINDOW_S after the new command)."""
 REST_SPEED = 0.1
 """m/s: a stopped robot's |vx| stays below this."""
 STOP_BARS = {"rest_s": 2.0, "rest_m": 1.5, "cross_s": 2.0}
@@ -669,7 +676,8 @@ def verdict(results: list[ScenarioResult], task: str | None = None) -> list[tupl
         r = by["vy slalom"]
         lo, hi = SLALOM_SWING
         swing, heading = r.extra["swing_m"], r.extra["heading_deg"]
-        checks.append((f"vy slalom: lateral swing {lo}-{hi} m", lo <= swing <= hi and not r.falls, f"{swing:.2f} m"))
+        checks.append((f"vy slalom: lateral swing {lo}-{hi} m", lo <= swing <= hi and not r.falls,
+                       _with_falls(f"{swing:.2f} m", r.falls)))  # fmt: skip
         checks.append((f"vy slalom: heading change < {SLALOM_HEADING_DEG} deg", heading < SLALOM_HEADING_DEG,
                        f"{heading:.0f} deg"))  # fmt: skip
     if "fig9 ramp" in by:
@@ -679,31 +687,34 @@ def verdict(results: list[ScenarioResult], task: str | None = None) -> list[tupl
     if "downhill 3deg" in by:
         r = by["downhill 3deg"]
         ok = r.err["vx"] <= DOWNHILL_VX_ERROR and not r.falls
-        checks.append((f"downhill 3deg: |vx error| <= {DOWNHILL_VX_ERROR}", ok, f"{r.err['vx']:.3f}"))
+        measured = _with_falls(f"{r.err['vx']:.3f}", r.falls)
+        checks.append((f"downhill 3deg: |vx error| <= {DOWNHILL_VX_ERROR}", ok, measured))
     for r in results:
         if r.kind == "brake" and "rest_s" in r.extra:
             t, d = r.extra["rest_s"], r.extra["rest_m"]
             ok = t <= STOP_BARS["rest_s"] and d <= STOP_BARS["rest_m"] and not r.falls
             checks.append((f"{r.name}: at rest within {STOP_BARS['rest_s']} s and {STOP_BARS['rest_m']} m", ok,
-                           f"{t:.2f} s, {d:.2f} m"))  # fmt: skip
+                           _with_falls(f"{t:.2f} s, {d:.2f} m", r.falls)))  # fmt: skip
         elif r.kind == "brake":
             t = r.extra["cross_s"]
             ok = t <= STOP_BARS["cross_s"] and not r.falls
-            checks.append((f"{r.name}: vx crosses zero within {STOP_BARS['cross_s']} s", ok, f"{t:.2f} s"))
+            checks.append((f"{r.name}: vx crosses zero within {STOP_BARS['cross_s']} s", ok,
+                           _with_falls(f"{t:.2f} s", r.falls)))  # fmt: skip
         elif r.kind == "hold" and r.name in HOLD_BARS:
             dist, turn = HOLD_BARS[r.name]
             d, y = r.extra["max_drift_m"], r.extra["max_turn_deg"]
             ok = d < dist and (turn is None or y < turn) and not r.falls
             bar = f"< {dist} m" + (f" and < {turn:g} deg" if turn is not None else "")
-            checks.append((f"{r.name}: zero command moves it {bar}", ok, f"{d:.2f} m, {y:.0f} deg"))
+            measured = _with_falls(f"{d:.2f} m, {y:.0f} deg", r.falls)
+            checks.append((f"{r.name}: zero command moves it {bar}", ok, measured))
         elif r.kind == "slope" and r.slope_deg <= 3.0:
             ok = r.err["vx"] <= SLOPE_VX_ERROR and not r.falls
-            checks.append((f"{r.name}: |vx error| <= {SLOPE_VX_ERROR}", ok, f"{r.err['vx']:.3f}"))
+            checks.append((f"{r.name}: |vx error| <= {SLOPE_VX_ERROR}", ok, _with_falls(f"{r.err['vx']:.3f}", r.falls)))
         elif r.kind == "go":
             axis = _axis(r.cmd)
             bar = bars.get(axis, min(b for a, b in THRESHOLDS.values() if a == axis))
             ok = r.err[axis] <= bar and not r.falls
-            measured = f"{r.err[axis]:.3f}" + (f" ({r.falls} fall)" if r.falls else "")  # the error first
+            measured = _with_falls(f"{r.err[axis]:.3f}", r.falls)
             checks.append((f"{r.name}: |{axis} error| <= {bar}, no fall", ok, measured))
     steep = [r for r in results if r.kind in ("hold", "slope") and r.slope_deg > 3.0]
     if steep:
@@ -725,6 +736,11 @@ def verdict(results: list[ScenarioResult], task: str | None = None) -> list[tupl
         )
         checks.append((f"{mode}: |vx error| <= {MODE_VX_ERROR}", r.err["vx"] <= MODE_VX_ERROR, f"{r.err['vx']:.3f}"))
     return checks
+
+
+def _with_falls(measured: str, falls: int) -> str:
+    """A check's measurement, with its falls after it where the check also fails for them."""
+    return measured + (f" ({falls} fall{'s' if falls > 1 else ''})" if falls else "")
 
 
 def format_table(results: list[ScenarioResult]) -> str:
