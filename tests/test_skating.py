@@ -615,6 +615,45 @@ def test_the_backward_stop_pose_waits_for_a_backward_roll_and_then_holds(tmp_pat
     e.close()
 
 
+def test_the_brake_pose_brakes_a_backward_roll_under_any_command_but_a_backward_one(tmp_path):
+    """gait.stop_brakes_commands: with stop_backward_speed the pose also applies where a
+    command that does not ask to go backwards (forwards, sideways, a turn) meets a backward
+    roll faster than the setting; a backward command, a slower roll and a forward roll keep
+    the actor's own action; the export computes the same; it refuses without
+    stop_backward_speed."""
+    pitch, roll, rate, speed = 0.1, 0.3, 0.2, 0.15
+    sets = [*CPU, f"gait.stop_pitch={pitch}", f"gait.stop_roll={roll}", f"gait.stop_backward_speed={speed}",
+            "gait.stop_brakes_commands=true"]  # fmt: skip
+    e = registry.make_env(TASK, sets, num_envs=6)
+    scale = e.cfg.control.action_scale
+    pose = (stop_pose(pitch, roll) / scale).reshape(1, 12)
+    cmds = torch.tensor([[0.5, 0, 0], [0, 0.4, 0], [0, 0, 0.8], [-0.5, 0, 0], [0.5, 0, 0], [0.5, 0, 0]])
+    e.set_commands(cmds)
+    held = torch.full((6, 12), -0.2)
+    for _ in range(2):
+        obs, *_ = e.step(held)
+    p = e.actor_prior()
+    prior = GaitPrior(p["cfg"], p["slices"], p["action_scale"])
+    mean = torch.full((6, 12), 0.3)
+    velocity = torch.tensor([[-0.5, 0, 0]] * 4 + [[-0.1, 0, 0], [0.5, 0, 0]])
+    out = prior.stop(obs["policy"], mean, velocity)
+    toward = held + rate * (pose - held)
+    assert torch.allclose(out[:3], toward[:3], atol=1e-5)  # forwards, sideways, a turn: brake first
+    assert torch.equal(out[3:], mean[3:])  # a backward command; too slow a roll; a forward roll
+    without = GaitPrior(p["cfg"], p["slices"], p["action_scale"])
+    without.stop_brakes_commands = False
+    assert torch.equal(without.stop(obs["policy"], mean, velocity)[:3], mean[:3])  # only zero commands
+    actor = export.build_actor(e, registry.get_task(TASK).train_cfg)
+    paths = export.export_policy(actor, export.policy_metadata(e, TASK), tmp_path)
+    err = export.check_parity(actor, paths, obs["policy"])
+    assert max(err.values()) < 1e-5, err
+    cfg = copy.deepcopy(p["cfg"])
+    cfg["stop_backward_speed"] = None
+    with pytest.raises(ValueError, match="stop_backward_speed"):
+        GaitPrior(cfg, p["slices"], p["action_scale"])
+    e.close()
+
+
 def test_the_prior_alone_skates_in_every_direction():
     """No learning: the prior's posture and oscillation move the robot the commanded way."""
     spec = registry.get_task(TASK)

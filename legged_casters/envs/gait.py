@@ -144,6 +144,12 @@ class GaitPriorCfg:
     backward roll fell in 0 and 2 of 15 with the two networks tried, after a forward one
     they fall more often (research/log.md, "A stop pose for backward rolls only"). Needs
     the velocity estimator."""
+    stop_brakes_commands: bool = False
+    """With stop_backward_speed: the pose also where a command that does not ask to go
+    backwards (vx >= 0: forwards, sideways, turning) meets a backward roll faster than that
+    speed, so that a reversal or a start during a backward roll brakes first and the actor
+    takes over near rest; a backward command keeps the actor's own action. False: only zero
+    commands (research/log.md, "A brake pose with a level trunk")."""
     stop_rate: float = field(default=0.2, metadata={"min": 1e-3, "max": 1.0})
     """Share of the remaining way from the last action to the stop pose covered each control
     step (0.2 at 50 Hz: 95 % in 0.28 s)."""
@@ -365,6 +371,9 @@ class GaitPrior(torch.nn.Module):
         self.stop_rate = float(c.stop_rate)
         self.stop_backward_on = c.stop_backward_speed is not None
         self.stop_backward_speed = float(c.stop_backward_speed or 0.0)
+        self.stop_brakes_commands = bool(c.stop_brakes_commands)
+        if self.stop_brakes_commands and not self.stop_backward_on:
+            raise ValueError("gait.stop_brakes_commands needs gait.stop_backward_speed (the backward roll it brakes)")
         pose = stop_pose(float(c.stop_pitch or 0.0), float(c.stop_roll)) / self.action_scale
         self.register_buffer("stop_action", pose.reshape(1, 12), persistent=False)
         self.register_buffer("foot_xy", FOOT_XY.clone(), persistent=False)
@@ -391,8 +400,9 @@ class GaitPrior(torch.nn.Module):
     def stop(self, obs: torch.Tensor, mean: torch.Tensor, velocity: torch.Tensor) -> torch.Tensor:
         """The actor's mean (n, 12) with the stop pose (GaitPriorCfg.stop_pitch) where the raw
         observation's command is zero (with stop_backward_speed: and the trunk rolls backwards
-        by `velocity`, the actor's estimate (n, 3), or the last action is already near the pose):
-        the last action moved `stop_rate` of the way to the pose."""
+        by `velocity`, the actor's estimate (n, 3), or the last action is already near the pose;
+        with stop_brakes_commands also where a command with vx >= 0 meets such a roll): the last
+        action moved `stop_rate` of the way to the pose."""
         if not self.stop_on:
             return mean
         commands = obs[:, self.cmd_start : self.cmd_start + 3]
@@ -402,7 +412,10 @@ class GaitPrior(torch.nn.Module):
             if velocity.shape[1] < 1:
                 raise RuntimeError("gait.stop_backward_speed needs the actor's velocity estimate (estimator.enabled)")
             near = (last - self.stop_action).pow(2).sum(dim=1, keepdim=True) < 0.25 * self.stop_action.pow(2).sum()
-            posing = posing & (near | (velocity[:, 0:1] < -self.stop_backward_speed))
+            rolling = velocity[:, 0:1] < -self.stop_backward_speed
+            posing = posing & (near | rolling)
+            if self.stop_brakes_commands:
+                posing = posing | (rolling & (commands[:, 0:1] >= 0.0))
         return torch.where(posing, last + self.stop_rate * (self.stop_action - last), mean)
 
 
