@@ -149,7 +149,10 @@ class GaitPriorCfg:
     backwards (vx >= 0: forwards, sideways, turning) meets a backward roll faster than that
     speed, so that a reversal or a start during a backward roll brakes first and the actor
     takes over near rest; a backward command keeps the actor's own action. False: only zero
-    commands (research/log.md, "A brake pose with a level trunk")."""
+    commands. Trained 200 iterations from the flat-stops checkpoint (pitch 0.1, roll 0.3) the
+    -2.0 -> +0.5 reversal crossed zero in 1.2 s but fell after it, and starts during and after
+    backward stops fell in 16-27 of 56 (research/log.md, "A brake pose with hip roll, and
+    starts during and after stops")."""
     stop_rate: float = field(default=0.2, metadata={"min": 1e-3, "max": 1.0})
     """Share of the remaining way from the last action to the stop pose covered each control
     step (0.2 at 50 Hz: 95 % in 0.28 s)."""
