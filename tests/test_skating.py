@@ -654,6 +654,43 @@ def test_the_brake_pose_brakes_a_backward_roll_under_any_command_but_a_backward_
     e.close()
 
 
+def test_the_rest_pose_waits_until_the_robot_is_still_and_then_holds(tmp_path):
+    """gait.stop_rest_speed: under a zero command the pose applies where the velocity estimate
+    is below the setting (the robot has come to rest) or the last action is already near the
+    pose (held once entered); a rolling robot and any command keep the actor's own action;
+    with stop_backward_speed as well, a backward roll enters it too; the export computes the
+    same."""
+    pitch, roll, rate, rest = 0.1, 0.3, 0.2, 0.03
+    sets = [*CPU, f"gait.stop_pitch={pitch}", f"gait.stop_roll={roll}", f"gait.stop_rest_speed={rest}"]
+    e = registry.make_env(TASK, sets, num_envs=5)
+    scale = e.cfg.control.action_scale
+    pose = (stop_pose(pitch, roll) / scale).reshape(1, 12)
+    cmds = torch.zeros(5, 3)
+    cmds[4, 0] = 0.5
+    e.set_commands(cmds)
+    held = torch.full((5, 12), -0.2)
+    held[3] = pose  # in the pose already
+    for _ in range(2):
+        obs, *_ = e.step(held)
+    p = e.actor_prior()
+    prior = GaitPrior(p["cfg"], p["slices"], p["action_scale"])
+    mean = torch.full((5, 12), 0.3)
+    velocity = torch.tensor([[0.01, 0, 0], [0.5, 0, 0], [-0.5, 0, 0], [0.5, 0, 0], [0.0, 0, 0]])
+    out = prior.stop(obs["policy"], mean, velocity)
+    toward = held + rate * (pose - held)
+    assert torch.allclose(out[[0, 3]], toward[[0, 3]], atol=1e-5)  # still; held once near the pose
+    assert torch.equal(out[[1, 2, 4]], mean[[1, 2, 4]])  # rolling either way; a command
+    cfg = copy.deepcopy(p["cfg"])
+    cfg["stop_backward_speed"] = 0.15
+    both = GaitPrior(cfg, p["slices"], p["action_scale"]).stop(obs["policy"], mean, velocity)
+    assert torch.allclose(both[2], toward[2], atol=1e-5) and torch.equal(both[1], mean[1])  # backwards only
+    actor = export.build_actor(e, registry.get_task(TASK).train_cfg)
+    paths = export.export_policy(actor, export.policy_metadata(e, TASK), tmp_path)
+    err = export.check_parity(actor, paths, obs["policy"])
+    assert max(err.values()) < 1e-5, err
+    e.close()
+
+
 def test_the_prior_alone_skates_in_every_direction():
     """No learning: the prior's posture and oscillation move the robot the commanded way."""
     spec = registry.get_task(TASK)

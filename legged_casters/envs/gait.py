@@ -153,6 +153,13 @@ class GaitPriorCfg:
     -2.0 -> +0.5 reversal crossed zero in 1.2 s but fell after it, and starts during and after
     backward stops fell in 16-27 of 56 (research/log.md, "A brake pose with hip roll, and
     starts during and after stops")."""
+    stop_rest_speed: float | None = field(default=None, metadata={"min": 0.0})
+    """None: off. A speed v (m/s): under a zero command the pose also (with stop_backward_speed)
+    or only (without it) where the actor's velocity estimate says the trunk is nearly still,
+    |vx| below v, and from then on while the command stays zero: the robot comes to rest by
+    the actor's own braking and then holds the pose, on the flat and on a slope (research/log.md,
+    "A brake pose with hip roll, and starts during and after stops": a rest pose). Needs the
+    velocity estimator."""
     stop_rate: float = field(default=0.2, metadata={"min": 1e-3, "max": 1.0})
     """Share of the remaining way from the last action to the stop pose covered each control
     step (0.2 at 50 Hz: 95 % in 0.28 s)."""
@@ -374,6 +381,8 @@ class GaitPrior(torch.nn.Module):
         self.stop_rate = float(c.stop_rate)
         self.stop_backward_on = c.stop_backward_speed is not None
         self.stop_backward_speed = float(c.stop_backward_speed or 0.0)
+        self.stop_rest_on = c.stop_rest_speed is not None
+        self.stop_rest_speed = float(c.stop_rest_speed or 0.0)
         self.stop_brakes_commands = bool(c.stop_brakes_commands)
         if self.stop_brakes_commands and not self.stop_backward_on:
             raise ValueError("gait.stop_brakes_commands needs gait.stop_backward_speed (the backward roll it brakes)")
@@ -411,12 +420,17 @@ class GaitPrior(torch.nn.Module):
         commands = obs[:, self.cmd_start : self.cmd_start + 3]
         last = obs[:, self.act_start : self.act_start + 12] / self.act_scale
         posing = (commands == 0.0).all(dim=1, keepdim=True)
-        if self.stop_backward_on:
+        if self.stop_backward_on or self.stop_rest_on:
             if velocity.shape[1] < 1:
-                raise RuntimeError("gait.stop_backward_speed needs the actor's velocity estimate (estimator.enabled)")
+                raise RuntimeError("gait.stop_backward_speed / stop_rest_speed need the actor's velocity estimate")
             near = (last - self.stop_action).pow(2).sum(dim=1, keepdim=True) < 0.25 * self.stop_action.pow(2).sum()
             rolling = velocity[:, 0:1] < -self.stop_backward_speed
-            posing = posing & (near | rolling)
+            enter = torch.zeros_like(near)
+            if self.stop_backward_on:
+                enter = enter | rolling
+            if self.stop_rest_on:
+                enter = enter | (velocity[:, 0:1].abs() < self.stop_rest_speed)
+            posing = posing & (near | enter)
             if self.stop_brakes_commands:
                 posing = posing | (rolling & (commands[:, 0:1] >= 0.0))
         return torch.where(posing, last + self.stop_rate * (self.stop_action - last), mean)
