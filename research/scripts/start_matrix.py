@@ -31,7 +31,7 @@ def scenarios() -> tuple[evaluate.Scenario, ...]:
 
 def main(argv: list[str]) -> int:
     if "--scenarios" in argv or "--checkpoints" in argv:
-        raise SystemExit("start_matrix.py: it runs its own scenarios on one policy; leave out --scenarios/--checkpoints")
+        raise SystemExit("start_matrix.py runs its own scenarios on one policy: leave out --scenarios/--checkpoints")
     evaluate.SCENARIO_SETS["stop"] = scenarios()
     found: list[tuple[str, bool, str]] = []
     verdict = evaluate.verdict
@@ -43,6 +43,8 @@ def main(argv: list[str]) -> int:
 
     evaluate.verdict = keep
     rc = evaluate.main([*argv, "--scenarios", "stop"])
+    if rc or not found:
+        return rc or 1
     failed = [name.split(":")[0] + ":" + name.split(":")[1] for name, ok, _ in found if not ok]
     falls = sum("fall" in measured for _, _, measured in found)
     print(f"[start_matrix] {len(found)} starts: {falls} with a fall, {len(failed)} failed: {failed}")
