@@ -157,9 +157,11 @@ class GaitPriorCfg:
     """None: off. A speed v (m/s): under a zero command the pose also (with stop_backward_speed)
     or only (without it) where the actor's velocity estimate says the trunk is nearly still,
     |vx| below v, and from then on while the command stays zero: the robot comes to rest by
-    the actor's own braking and then holds the pose, on the flat and on a slope (research/log.md,
-    "A brake pose with hip roll, and starts during and after stops": a rest pose). Needs the
-    velocity estimator."""
+    the actor's own braking and then holds the pose, on the flat and on a slope. Trained 200
+    iterations from the flat-stops checkpoint (pitch 0.1, roll 0.3, 0.03 m/s) it held the
+    flat and 3 deg (0.07 / 0.13 m) but lost the forward stops, and the start after a stand
+    fell: the pose tilts the trunk from a stand (research/log.md, "A brake pose with hip
+    roll, and starts during and after stops"). Needs the velocity estimator."""
     stop_rate: float = field(default=0.2, metadata={"min": 1e-3, "max": 1.0})
     """Share of the remaining way from the last action to the stop pose covered each control
     step (0.2 at 50 Hz: 95 % in 0.28 s)."""
