@@ -136,8 +136,9 @@ class GaitPriorCfg:
     stop_roll: float = 0.0
     """Hip offset x side (left +1) of the stop pose, rad."""
     stop_backward_speed: float | None = field(default=None, metadata={"min": 0.0})
-    """None: the stop pose under every zero command. A speed v (m/s): only where the actor's
-    velocity estimate says the trunk rolls backwards faster than v when the command is zero,
+    """None (with stop_rest_speed None): the stop pose under every zero command. A speed v
+    (m/s): only where the actor's velocity estimate says the trunk rolls backwards faster
+    than v when the command is zero,
     and from then on while it stays zero (the last action within half the pose's distance of
     the pose); a forward roll is left to the actor. The legs cannot brake a backward roll by
     pushing and the pose brakes it in under a second; starts out of the pose after a
@@ -415,8 +416,9 @@ class GaitPrior(torch.nn.Module):
         """The actor's mean (n, 12) with the stop pose (GaitPriorCfg.stop_pitch) where the raw
         observation's command is zero (with stop_backward_speed: and the trunk rolls backwards
         by `velocity`, the actor's estimate (n, 3), or the last action is already near the pose;
-        with stop_brakes_commands also where a command with vx >= 0 meets such a roll): the last
-        action moved `stop_rate` of the way to the pose."""
+        with stop_rest_speed likewise where the trunk is nearly still; with stop_brakes_commands
+        also where a command with vx >= 0 meets a backward roll): the last action moved
+        `stop_rate` of the way to the pose."""
         if not self.stop_on:
             return mean
         commands = obs[:, self.cmd_start : self.cmd_start + 3]
