@@ -138,13 +138,12 @@ class GaitPriorCfg:
     stop_backward_speed: float | None = field(default=None, metadata={"min": 0.0})
     """None (with stop_rest_speed None): the stop pose under every zero command. A speed v
     (m/s): only where the actor's velocity estimate says the trunk rolls backwards faster
-    than v when the command is zero,
-    and from then on while it stays zero (the last action within half the pose's distance of
-    the pose); a forward roll is left to the actor. The legs cannot brake a backward roll by
-    pushing and the pose brakes it in under a second; starts out of the pose after a
-    backward roll fell in 0 and 2 of 15 with the two networks tried, after a forward one
-    they fall more often (research/log.md, "A stop pose for backward rolls only"). Needs
-    the velocity estimator."""
+    than v when the command is zero, and from then on while it stays zero (the last action
+    within half the pose's distance of the pose); a forward roll is left to the actor. The
+    legs cannot brake a backward roll by pushing and the pose brakes it in under a second;
+    starts out of the pose after a backward roll fell in 0 and 2 of 15 with the two networks
+    tried, after a forward one they fall more often (research/log.md, "A stop pose for
+    backward rolls only"). Needs the velocity estimator."""
     stop_brakes_commands: bool = False
     """With stop_backward_speed: the pose also where a command that does not ask to go
     backwards (vx >= 0: forwards, sideways, turning) meets a backward roll faster than that
