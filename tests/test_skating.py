@@ -542,6 +542,25 @@ def test_export_carries_the_prior_and_the_bridge_rebuilds_the_clock(tmp_path):
     e.close()
 
 
+def _stop_prior(sets: list[str], cmds: torch.Tensor, held: torch.Tensor):
+    """(env, observation, actor_prior() dict, GaitPrior) after the robots of a `sets` env, told
+    `cmds`, held the actions `held` for two steps (so that the actions term observes them)."""
+    e = registry.make_env(TASK, sets, num_envs=len(cmds))
+    e.set_commands(cmds)
+    for _ in range(2):
+        obs, *_ = e.step(held)
+    p = e.actor_prior()
+    return e, obs, p, GaitPrior(p["cfg"], p["slices"], p["action_scale"])
+
+
+def _assert_export_matches(e, obs, tmp_path, actor=None) -> None:
+    """The exported actor (of `actor`, else a fresh one for `e`) computes what it does on `obs`."""
+    actor = actor if actor is not None else export.build_actor(e, registry.get_task(TASK).train_cfg)
+    paths = export.export_policy(actor, export.policy_metadata(e, TASK), tmp_path)
+    err = export.check_parity(actor, paths, obs["policy"])
+    assert max(err.values()) < 1e-5, err
+
+
 def test_the_stop_pose_takes_over_under_a_zero_command_only(tmp_path):
     """gait.stop_pitch: where the observed command is zero the actor's whole action moves from
     the last action a share stop_rate towards the stop pose (calves +-pitch front/rear, hips
@@ -566,9 +585,7 @@ def test_the_stop_pose_takes_over_under_a_zero_command_only(tmp_path):
         assert mean[i].tolist() == pytest.approx(expect.tolist(), abs=1e-5)
     assert torch.equal(mean[[1, 3]], own[[1, 3]])  # a drive and a turn on the spot: the actor's own
     assert not torch.allclose(own[0], expect)
-    paths = export.export_policy(actor, export.policy_metadata(e, TASK), tmp_path)
-    err = export.check_parity(actor, paths, obs["policy"])
-    assert max(err.values()) < 1e-5, err
+    _assert_export_matches(e, obs, tmp_path, actor)
     p = e.actor_prior()
     del p["slices"]["actions"]
     with pytest.raises(ValueError, match="actions"):
@@ -584,19 +601,13 @@ def test_the_backward_stop_pose_waits_for_a_backward_roll_and_then_holds(tmp_pat
     estimate the prior refuses."""
     pitch, rate, speed = 0.4, 0.2, 0.15
     sets = [*CPU, f"gait.stop_pitch={pitch}", f"gait.stop_backward_speed={speed}"]
-    e = registry.make_env(TASK, sets, num_envs=6)
-    scale = e.cfg.control.action_scale
-    pose = (stop_pose(pitch, 0.0) / scale).reshape(1, 12)
+    pose = (stop_pose(pitch, 0.0) / registry.get_task(TASK).env_cfg.control.action_scale).reshape(1, 12)
     cmds = torch.zeros(6, 3)
     cmds[5, 0] = 0.5
-    e.set_commands(cmds)
     held = torch.zeros(6, 12)
     held[3:5] = pose  # rows 3 and 4: in the pose already (row 4 exactly, row 3 a little off)
     held[3] += 0.3
-    for _ in range(2):
-        obs, *_ = e.step(held)
-    p = e.actor_prior()
-    prior = GaitPrior(p["cfg"], p["slices"], p["action_scale"])
+    e, obs, _, prior = _stop_prior(sets, cmds, held)
     mean = torch.full((6, 12), 0.3)
     velocity = torch.tensor([[-0.5, 0, 0], [0.5, 0, 0], [-0.1, 0, 0], [0.5, 0, 0], [0.0, 0, 0], [-0.5, 0, 0]])
     out = prior.stop(obs["policy"], mean, velocity)
@@ -608,10 +619,7 @@ def test_the_backward_stop_pose_waits_for_a_backward_roll_and_then_holds(tmp_pat
     assert torch.equal(out[5], mean[5])  # a command
     with pytest.raises(RuntimeError, match="velocity estimate"):
         prior.stop(obs["policy"], mean, velocity[:, :0])
-    actor = export.build_actor(e, registry.get_task(TASK).train_cfg)
-    paths = export.export_policy(actor, export.policy_metadata(e, TASK), tmp_path)
-    err = export.check_parity(actor, paths, obs["policy"])
-    assert max(err.values()) < 1e-5, err
+    _assert_export_matches(e, obs, tmp_path)
     e.close()
 
 
@@ -624,16 +632,10 @@ def test_the_brake_pose_brakes_a_backward_roll_under_any_command_but_a_backward_
     pitch, roll, rate, speed = 0.1, 0.3, 0.2, 0.15
     sets = [*CPU, f"gait.stop_pitch={pitch}", f"gait.stop_roll={roll}", f"gait.stop_backward_speed={speed}",
             "gait.stop_brakes_commands=true"]  # fmt: skip
-    e = registry.make_env(TASK, sets, num_envs=6)
-    scale = e.cfg.control.action_scale
-    pose = (stop_pose(pitch, roll) / scale).reshape(1, 12)
+    pose = (stop_pose(pitch, roll) / registry.get_task(TASK).env_cfg.control.action_scale).reshape(1, 12)
     cmds = torch.tensor([[0.5, 0, 0], [0, 0.4, 0], [0, 0, 0.8], [-0.5, 0, 0], [0.5, 0, 0], [0.5, 0, 0]])
-    e.set_commands(cmds)
     held = torch.full((6, 12), -0.2)
-    for _ in range(2):
-        obs, *_ = e.step(held)
-    p = e.actor_prior()
-    prior = GaitPrior(p["cfg"], p["slices"], p["action_scale"])
+    e, obs, p, prior = _stop_prior(sets, cmds, held)
     mean = torch.full((6, 12), 0.3)
     velocity = torch.tensor([[-0.5, 0, 0]] * 4 + [[-0.1, 0, 0], [0.5, 0, 0]])
     out = prior.stop(obs["policy"], mean, velocity)
@@ -643,10 +645,7 @@ def test_the_brake_pose_brakes_a_backward_roll_under_any_command_but_a_backward_
     without = GaitPrior(p["cfg"], p["slices"], p["action_scale"])
     without.stop_brakes_commands = False
     assert torch.equal(without.stop(obs["policy"], mean, velocity)[:3], mean[:3])  # only zero commands
-    actor = export.build_actor(e, registry.get_task(TASK).train_cfg)
-    paths = export.export_policy(actor, export.policy_metadata(e, TASK), tmp_path)
-    err = export.check_parity(actor, paths, obs["policy"])
-    assert max(err.values()) < 1e-5, err
+    _assert_export_matches(e, obs, tmp_path)
     cfg = copy.deepcopy(p["cfg"])
     cfg["stop_backward_speed"] = None
     with pytest.raises(ValueError, match="stop_backward_speed"):
@@ -662,18 +661,12 @@ def test_the_rest_pose_waits_until_the_robot_is_still_and_then_holds(tmp_path):
     same."""
     pitch, roll, rate, rest = 0.1, 0.3, 0.2, 0.03
     sets = [*CPU, f"gait.stop_pitch={pitch}", f"gait.stop_roll={roll}", f"gait.stop_rest_speed={rest}"]
-    e = registry.make_env(TASK, sets, num_envs=5)
-    scale = e.cfg.control.action_scale
-    pose = (stop_pose(pitch, roll) / scale).reshape(1, 12)
+    pose = (stop_pose(pitch, roll) / registry.get_task(TASK).env_cfg.control.action_scale).reshape(1, 12)
     cmds = torch.zeros(5, 3)
     cmds[4, 0] = 0.5
-    e.set_commands(cmds)
     held = torch.full((5, 12), -0.2)
     held[3] = pose  # in the pose already
-    for _ in range(2):
-        obs, *_ = e.step(held)
-    p = e.actor_prior()
-    prior = GaitPrior(p["cfg"], p["slices"], p["action_scale"])
+    e, obs, p, prior = _stop_prior(sets, cmds, held)
     mean = torch.full((5, 12), 0.3)
     velocity = torch.tensor([[0.01, 0, 0], [0.5, 0, 0], [-0.5, 0, 0], [0.5, 0, 0], [0.0, 0, 0]])
     out = prior.stop(obs["policy"], mean, velocity)
@@ -684,10 +677,7 @@ def test_the_rest_pose_waits_until_the_robot_is_still_and_then_holds(tmp_path):
     cfg["stop_backward_speed"] = 0.15
     both = GaitPrior(cfg, p["slices"], p["action_scale"]).stop(obs["policy"], mean, velocity)
     assert torch.allclose(both[2], toward[2], atol=1e-5) and torch.equal(both[1], mean[1])  # backwards only
-    actor = export.build_actor(e, registry.get_task(TASK).train_cfg)
-    paths = export.export_policy(actor, export.policy_metadata(e, TASK), tmp_path)
-    err = export.check_parity(actor, paths, obs["policy"])
-    assert max(err.values()) < 1e-5, err
+    _assert_export_matches(e, obs, tmp_path)
     e.close()
 
 

@@ -45,7 +45,7 @@ def main(argv: list[str]) -> int:
     rc = evaluate.main([*argv, "--scenarios", "stop"])
     if rc or not found:
         return rc or 1
-    failed = [name.split(":")[0] + ":" + name.split(":")[1] for name, ok, _ in found if not ok]
+    failed = [name.rsplit(":", 1)[0] for name, ok, _ in found if not ok]  # "go ...: vx +0.5"
     falls = sum("fall" in measured for _, _, measured in found)
     print(f"[start_matrix] {len(found)} starts: {falls} with a fall, {len(failed)} failed: {failed}")
     return rc
