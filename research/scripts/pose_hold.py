@@ -11,7 +11,7 @@ per control step), and hold it. Evaluation settings (no noise, pushes or randomi
 * Hold: from rest on ground tilted by --slopes deg, falling towards the nose, the tail or the
   left side; measured: how far the trunk moves in --seconds and its nose-up tilt at the end.
 * Brake: on the flat the trunk starts at --speeds (+-1.5 m/s) with the pose already held; measured: when
-  its speed first falls below the stop checks' rest speed.
+  its speed first falls below the stop checks' rest speed, and after which it stays below.
 """
 
 from __future__ import annotations
@@ -34,7 +34,8 @@ DOWNHILL = {"nose": 0.0, "tail": math.pi, "side": math.pi / 2}
 
 def run(task: str, poses: list[tuple[float, float]], seconds: float, slope_deg: float = 0.0,
         downhill: float = 0.0, speed: float = 0.0, swivels: torch.Tensor | None = None):  # fmt: skip
-    """One robot per pose: (moved m, final nose-up tilt deg, fell, time to rest s, swivel angles
+    """One robot per pose: (moved m, final nose-up tilt deg, fell, (time the speed first falls
+    below REST, time after which it stays there) s, swivel angles
     before and after, deg) per pose. `swivels` (n, 4) rad: the casters' swivel angles at the
     start (None: the stand's)."""
     n = len(poses)
@@ -66,15 +67,17 @@ def run(task: str, poses: list[tuple[float, float]], seconds: float, slope_deg: 
         swivel0 = _swivel_deg(env)
         fell = torch.zeros(n, dtype=torch.bool)
         rest = torch.full((n,), math.inf)
+        settled = torch.zeros(n)  # the last time the speed was at or above REST
         for k in range(int(round(seconds / env.dt))):
             action = action + rate * (target - action)
             _, _, dones, _ = env.step(action)
             fell |= dones.bool()
             slow = (env.base_lin_vel_world[:, 0].abs() < REST) & torch.isinf(rest)
             rest[slow] = (k + 1) * env.dt
+            settled[env.base_lin_vel_world[:, 0].abs() >= REST] = (k + 1) * env.dt
         moved = (env.base_pos[:, :2] - start).norm(dim=1)
         nose_up = torch.rad2deg(torch.asin(-env.projected_gravity[:, 0].clamp(-1, 1)))
-        return moved, nose_up, fell, rest, swivel0, _swivel_deg(env)
+        return moved, nose_up, fell, (rest, settled), swivel0, _swivel_deg(env)
     finally:
         env.close()
 
@@ -149,10 +152,10 @@ def main(argv: list[str] | None = None) -> int:
             "fell" if f else f"{m:.2f}" for m, f in zip(moved.tolist(), fell.tolist(), strict=True)
         ]
     for v in floats(args.speeds):
-        _, _, fell, rest, *_ = run(args.task, poses, args.seconds, speed=v)
-        cols[f"brake {v:+g}: s"] = [
-            "fell" if f else ("never" if math.isinf(r) else f"{r:.2f}")
-            for r, f in zip(rest.tolist(), fell.tolist(), strict=True)
+        _, _, fell, (rest, settled), *_ = run(args.task, poses, args.seconds, speed=v)
+        cols[f"brake {v:+g}: s, for good"] = [
+            "fell" if f else ("never" if math.isinf(r) else f"{r:.2f}, {t:.2f}")
+            for r, t, f in zip(rest.tolist(), settled.tolist(), fell.tolist(), strict=True)
         ]
     print("| pitch | roll | " + " | ".join(cols) + " |")
     print("|---:|---:|" + "---|" * len(cols))
