@@ -134,7 +134,11 @@ class GaitPriorCfg:
     without it falls in a third of its starts out of it (research/log.md, "A stop pose").
     Reads the `actions` observation term (the last action)."""
     stop_roll: float = 0.0
-    """Hip offset x side (left +1) of the stop pose, rad."""
+    """Hip offset x side (left +1) of the stop pose, rad. Spreading the hips leans the casters'
+    swivel axes outwards and the casters swing round to a new rest, which sets the trunk's
+    pitch: with pitch 0.1-0.4 it rests 20-31 deg nose-up, with roll 0.6-0.8 and pitch -0.1 to 0
+    within 6 deg of level (research/scripts/pose_hold.py; research/log.md, "What a held pose
+    does by itself")."""
     stop_backward_speed: float | None = field(default=None, metadata={"min": 0.0})
     """None (with stop_rest_speed None): the stop pose under every zero command. A speed v
     (m/s): only where the actor's velocity estimate says the trunk rolls backwards faster
@@ -155,9 +159,13 @@ class GaitPriorCfg:
     starts during and after stops")."""
     stop_rest_speed: float | None = field(default=None, metadata={"min": 0.0})
     """None: off. A speed v (m/s): under a zero command the pose also (with stop_backward_speed)
-    or only (without it) where the actor's velocity estimate says the trunk is nearly still,
-    |vx| below v, and from then on while the command stays zero: the robot comes to rest by
-    the actor's own braking and then holds the pose, on the flat and on a slope. Trained 200
+    or only (without it) where the actor's velocity estimate says the trunk is slower than v,
+    |vx| below v, and from then on while the command stays zero: the actor brakes down to v
+    and the pose does the rest and holds, on the flat and on a slope. The estimate does not
+    see a passive roll, so a small v (nearly still) holds a slope only by that blindness; 0.8
+    with a level pose (pitch -0.1, roll 0.7, which brakes a forward roll from 1.0 m/s) stopped
+    the flat-stops network from +1.5 and +2.0 in 0.78 / 1.56 s untrained (research/log.md,
+    "What a held pose does by itself"). Trained 200
     iterations from the flat-stops checkpoint (pitch 0.1, roll 0.3, 0.03 m/s) it held the
     flat and 3 deg (0.07 / 0.13 m) but lost the forward stops, and the start after a stand
     fell: the pose tilts the trunk from a stand (research/log.md, "A brake pose with hip
