@@ -165,11 +165,11 @@ class GaitPriorCfg:
     see a passive roll, so a small v (nearly still) holds a slope only by that blindness; 0.8
     with a level pose (pitch -0.1, roll 0.7, which brakes a forward roll from 1.0 m/s) stopped
     the flat-stops network from +1.5 and +2.0 in 0.78 / 1.56 s untrained (research/log.md,
-    "What a held pose does by itself"). Trained 200
-    iterations from the flat-stops checkpoint (pitch 0.1, roll 0.3, 0.03 m/s) it held the
-    flat and 3 deg (0.07 / 0.13 m) but lost the forward stops, and the start after a stand
-    fell: the pose tilts the trunk from a stand (research/log.md, "A brake pose with hip
-    roll, and starts during and after stops"). Needs the velocity estimator."""
+    "What a held pose does by itself"). Trained 200 iterations from the flat-stops
+    checkpoint (pitch 0.1, roll 0.3, 0.03 m/s) it held the flat and 3 deg (0.07 / 0.13 m)
+    but lost the forward stops, and the start after a stand fell: the pose tilts the trunk
+    from a stand (research/log.md, "A brake pose with hip roll, and starts during and after
+    stops"). Needs the velocity estimator."""
     stop_rate: float = field(default=0.2, metadata={"min": 1e-3, "max": 1.0})
     """Share of the remaining way from the last action to the stop pose covered each control
     step (0.2 at 50 Hz: 95 % in 0.28 s)."""
@@ -423,9 +423,9 @@ class GaitPrior(torch.nn.Module):
         """The actor's mean (n, 12) with the stop pose (GaitPriorCfg.stop_pitch) where the raw
         observation's command is zero (with stop_backward_speed: and the trunk rolls backwards
         by `velocity`, the actor's estimate (n, 3), or the last action is already near the pose;
-        with stop_rest_speed likewise where the trunk is nearly still; with stop_brakes_commands
-        also where a command with vx >= 0 meets a backward roll): the last action moved
-        `stop_rate` of the way to the pose."""
+        with stop_rest_speed likewise where it is slower than that speed either way; with
+        stop_brakes_commands also where a command with vx >= 0 meets a backward roll): the last
+        action moved `stop_rate` of the way to the pose."""
         if not self.stop_on:
             return mean
         commands = obs[:, self.cmd_start : self.cmd_start + 3]

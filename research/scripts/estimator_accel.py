@@ -1,6 +1,6 @@
 """Can the velocity estimator see a passive roll? Its observations with and without an accelerometer.
 
-    python research/scripts/estimator_accel.py               # about 15 min on 2 cores
+    python research/scripts/estimator_accel.py               # about 7 min on 2 cores
     python research/scripts/estimator_accel.py --envs 128 --seconds 20 --epochs 5   # a quick look
 
 A rolling caster robot whose legs do not move gives its joint encoders, its gyro and its
@@ -43,13 +43,14 @@ def collect(policy_dir: Path, envs: int, seconds: float, every: int, seed: int):
     """Roll the exported policy out; returns the policy observation, the accelerometer history,
     the true velocity, whether the command is zero, the slope (deg), the env and the shipped
     estimator's estimate per kept sample."""
-    task, spec, env_cfg, policy, _, _ = load_exported(policy_dir, None)
+    _, spec, env_cfg, policy, _, _ = load_exported(policy_dir, None)
     fields = {"num_envs": envs, "sim.backend": "cpu", "sim.device": "cpu", "seed": seed,
               "terrain.slope_deg": 6.0, "terrain.slope_fraction": 0.6, "commands.standing_fraction": 0.25}  # fmt: skip
     env = spec.env_class(common.with_overrides(env_cfg, fields, "estimator_accel env"))
     try:
         obs = env.reset()
-        hist = torch.zeros(envs, 50, 3)
+        window = env.cfg.history_length  # the accelerometer's history as long as the estimator's
+        hist = torch.zeros(envs, window, 3)
         v_prev = env.base_lin_vel_world.clone()
         names = ("obs", "acc", "vel", "zero", "slope", "env", "estimate", "age")
         age = torch.zeros(envs)  # control steps since the robot's (standing) start
@@ -58,6 +59,7 @@ def collect(policy_dir: Path, envs: int, seconds: float, every: int, seed: int):
         t0 = time.time()
         for k in range(steps):
             with torch.no_grad():
+                estimate = policy.estimate(obs)  # the shipped estimator's, for this observation
                 obs, _, dones, _ = env.step(policy(obs))
             v = env.base_lin_vel_world.clone()
             accel = (v - v_prev) / env.dt
@@ -65,17 +67,17 @@ def collect(policy_dir: Path, envs: int, seconds: float, every: int, seed: int):
             done = dones.bool()
             force[done] = quat_rotate_inverse(env.base_quat, -env.gravity_dir)[done]  # a fresh robot at rest
             hist = torch.cat([force.unsqueeze(1), hist[:, :-1]], dim=1)
-            hist[done] = force[done].unsqueeze(1).expand(-1, 50, -1)
+            hist[done] = force[done].unsqueeze(1).expand(-1, window, -1)
             v_prev = v
             age = torch.where(done, torch.zeros_like(age), age + 1)
-            if k >= 50 and k % every == 0:
+            if k >= window and k % every == 0:
                 keep["obs"].append(obs["policy"].clone())
                 keep["acc"].append(hist.reshape(envs, -1).clone())
                 keep["vel"].append(env.base_lin_vel.clone())
                 keep["zero"].append((env.commands == 0).all(dim=1))
                 keep["slope"].append(env.ground_slope_deg())
                 keep["env"].append(torch.arange(envs))
-                keep["estimate"].append(policy.estimate(obs))
+                keep["estimate"].append(estimate)
                 keep["age"].append(age.clone())
             if k % 500 == 0:
                 print(f"[estimator_accel] step {k}/{steps}, {time.time() - t0:.0f} s", flush=True)
@@ -138,13 +140,12 @@ def main(argv: list[str] | None = None) -> int:
         & (d["slope"] >= 2.0)
         & (d["age"] < 50),
     }
-    rows = []
-    with torch.no_grad():  # the shipped estimator as it is, on the same held-out samples
-        shipped = d.pop("estimate")
-    err = shipped[:, 0] - d["vel"][:, 0]
-    rows.append(
-        ("the shipped estimator", [f"{err[m].pow(2).mean().sqrt():.3f} ({int(m.sum())})" for m in groups.values()])
-    )
+
+    def cells(estimate: torch.Tensor) -> list[str]:
+        err = estimate[:, 0] - d["vel"][:, 0]
+        return [f"{err[m].pow(2).mean().sqrt():.3f} ({int(m.sum())})" for m in groups.values()]
+
+    rows = [("the shipped estimator", cells(d["estimate"]))]
     for name, x in (
         ("A: policy observation", d["obs"]),
         ("B: and 1 s of accelerometer", torch.cat([d["obs"], d["acc"]], 1)),
@@ -152,8 +153,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"[estimator_accel] fitting {name} ({x.shape[1]} inputs)", flush=True)
         est = fit(x, d["vel"], train, args.epochs, args.seed)
         with torch.no_grad():
-            err = torch.cat([est(x[b]) for b in torch.arange(len(x)).split(8192)])[:, 0] - d["vel"][:, 0]
-        rows.append((name, [f"{err[m].pow(2).mean().sqrt():.3f} ({int(m.sum())})" for m in groups.values()]))
+            rows.append((name, cells(torch.cat([est(x[b]) for b in torch.arange(len(x)).split(8192)]))))
     print("| estimator | " + " | ".join(f"vx RMS, {g} (samples)" for g in groups) + " |")
     print("|---|" + "---:|" * len(groups))
     for name, cells in rows:

@@ -1,6 +1,6 @@
 """What does a held leg pose do on its own: does it hold a slope, brake a roll, tilt the trunk?
 
-    python research/scripts/pose_hold.py                          # about 2 min on 2 cores
+    python research/scripts/pose_hold.py                          # about 35 s on 2 cores
     python research/scripts/pose_hold.py --pitches 0,0.1 --rolls 0.3,0.5
 
 No policy and no oscillation: every robot stands, then its joint targets move to the stop
@@ -10,8 +10,9 @@ per control step), and hold it. Evaluation settings (no noise, pushes or randomi
 
 * Hold: from rest on ground tilted by --slopes deg, falling towards the nose, the tail or the
   left side; measured: how far the trunk moves in --seconds and its nose-up tilt at the end.
-* Brake: on the flat the trunk starts at --speeds (+-1.5 m/s) with the pose already held; measured: when
-  its speed first falls below the stop checks' rest speed, and after which it stays below.
+* Brake: on the flat the trunk starts at each of --speeds (m/s) with the pose already held;
+  measured: when its speed first falls below the stop checks' rest speed, and from when on it
+  stays below.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from legged_casters import registry
 from legged_casters.envs import gait
 from legged_casters.tools.evaluate import EVAL_SETTINGS
 from legged_casters.tools.evaluate import REST_SPEED as REST
+from legged_casters.utils.math import wrap_to_pi
 
 DOWNHILL = {"nose": 0.0, "tail": math.pi, "side": math.pi / 2}
 """World yaw the ground falls towards, per case (the trunk starts facing +x)."""
@@ -35,9 +37,8 @@ DOWNHILL = {"nose": 0.0, "tail": math.pi, "side": math.pi / 2}
 def run(task: str, poses: list[tuple[float, float]], seconds: float, slope_deg: float = 0.0,
         downhill: float = 0.0, speed: float = 0.0, swivels: torch.Tensor | None = None):  # fmt: skip
     """One robot per pose: (moved m, final nose-up tilt deg, fell, (time the speed first falls
-    below REST, time after which it stays there) s, swivel angles
-    before and after, deg) per pose. `swivels` (n, 4) rad: the casters' swivel angles at the
-    start (None: the stand's)."""
+    below REST, time from which it stays there) s, swivel angles before and after deg) per
+    pose. `swivels` (n, 4) rad: the casters' swivel angles at the start (None: the stand's)."""
     n = len(poses)
     cfg, _ = registry.task_configs(
         task, {**EVAL_SETTINGS, "num_envs": n, "episode_length_s": seconds + 5.0, "sim.backend": "cpu"}
@@ -106,17 +107,21 @@ def _draws(args, poses: list[tuple[float, float]], slopes: list[float]) -> int:
             f"{m:.2f}" + (f" ({f})" if f else "") for m, f in zip(worst, falls, strict=True)
         ]
     print(f"each pose from {k} random swivel states, {args.seconds:g} s")
-    print("| pitch | roll | " + " | ".join(cells) + " |")
-    print("|---:|---:|" + "---|" * len(cells))
-    for i, (p, r) in enumerate(poses):
-        print(f"| {p:g} | {r:g} | " + " | ".join(c[i] for c in cells.values()) + " |", flush=True)
+    _print_table(poses, cells)
     return 0
+
+
+def _print_table(poses: list[tuple[float, float]], cols: dict[str, list[str]]) -> None:
+    """A markdown table: one row per pose, one column per entry of `cols`."""
+    print("| pitch | roll | " + " | ".join(cols) + " |")
+    print("|---:|---:|" + "---|" * len(cols))
+    for i, (p, r) in enumerate(poses):
+        print(f"| {p:g} | {r:g} | " + " | ".join(c[i] for c in cols.values()) + " |", flush=True)
 
 
 def _swivel_deg(env) -> torch.Tensor:
     """The four caster swivel angles (n, 4), deg, wrapped to [-180, 180)."""
-    q = env.sim.qpos[:, env.swivel_qadr]
-    return torch.rad2deg(torch.remainder(q + math.pi, 2 * math.pi) - math.pi)
+    return torch.rad2deg(wrap_to_pi(env.sim.qpos[:, env.swivel_qadr]))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -157,10 +162,7 @@ def main(argv: list[str] | None = None) -> int:
             "fell" if f else ("never" if math.isinf(r) else f"{r:.2f}, {t:.2f}")
             for r, t, f in zip(rest.tolist(), settled.tolist(), fell.tolist(), strict=True)
         ]
-    print("| pitch | roll | " + " | ".join(cols) + " |")
-    print("|---:|---:|" + "---|" * len(cols))
-    for i, (p, r) in enumerate(poses):
-        print(f"| {p:g} | {r:g} | " + " | ".join(c[i] for c in cols.values()) + " |", flush=True)
+    _print_table(poses, cols)
     return 0
 
 

@@ -61,9 +61,8 @@ def main(argv: list[str] | None = None) -> int:
             out = torch.where(posed, out + args.blend * (mean - out), out)
         if args.damp_thigh:
             pitch_rate = obs[:, self.yaw_col - 1 : self.yaw_col] / self.gyro_scale
-            pattern = torch.zeros(4, 3)
-            pattern[:, 1] = self.front.float()
-            add = args.damp_thigh * pitch_rate * pattern.reshape(1, 12) / self.action_scale
+            thighs = gait.stop_pose(0.0, 0.0, thigh=1.0)  # each thigh x its leg's end (front +1)
+            add = args.damp_thigh * pitch_rate * thighs / self.action_scale
             out = torch.where(posed, out + add, out)
         return out
 
